@@ -1,0 +1,191 @@
+"""The observation model: a capture (cameras + 2D points) and the viewing rays it implies."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import InputError
+
+REQUIRED_KEYS = ("x", "K", "R", "C")
+OPTIONAL_KEYS = ("stream", "frame", "confidence", "image_names")
+
+
+@dataclass(kw_only=True)
+class Capture:
+    """P dynamic points seen in N images, each image one camera at one unknown instant.
+
+    Projection: ``x ~ K R (X - C)``, pixel (0, 0) = centre of the top-left pixel's corner
+    convention of the capture file (INTERFACES.md section 1).
+
+    Attributes
+    ----------
+    x : (N, P, 2) float
+        Pixel coordinates; NaN = not observed.
+    K : (N, 3, 3) float
+        Pinhole intrinsics (pixels already undistorted).
+    R : (N, 3, 3) float
+        World-to-camera rotations.
+    C : (N, 3) float
+        Camera centres in world coordinates.
+    stream : (N,) int
+        Stream (video / camera) id; -1 = lone photo (each becomes a stream of its own).
+    frame : (N,) int
+        Frame index inside its stream (compared only within a stream).
+    confidence : (N, P) float or None
+        Detector scores in [0, 1]; 0 / NaN = not observed. Used as observation weights.
+    image_names : (N,) str
+    """
+
+    x: np.ndarray
+    K: np.ndarray
+    R: np.ndarray
+    C: np.ndarray
+    stream: np.ndarray | None = None
+    frame: np.ndarray | None = None
+    confidence: np.ndarray | None = None
+    image_names: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.x = np.asarray(self.x, dtype=np.float64)
+        self.K = np.asarray(self.K, dtype=np.float64)
+        self.R = np.asarray(self.R, dtype=np.float64)
+        self.C = np.asarray(self.C, dtype=np.float64)
+        n = self.x.shape[0] if self.x.ndim == 3 else 0
+        if self.stream is None:
+            self.stream = np.full(n, -1, dtype=np.int64)
+        if self.frame is None:
+            self.frame = np.zeros(n, dtype=np.int64)
+        self.stream = np.asarray(self.stream).astype(np.int64, copy=False)
+        self.frame = np.asarray(self.frame).astype(np.int64, copy=False)
+        if self.confidence is not None:
+            self.confidence = np.asarray(self.confidence, dtype=np.float64)
+        if self.image_names is None:
+            self.image_names = np.array([f"image_{i:05d}" for i in range(n)])
+        self.image_names = np.asarray(self.image_names).astype(str)
+
+    @property
+    def num_images(self) -> int:
+        return self.x.shape[0]
+
+    @property
+    def num_points(self) -> int:
+        return self.x.shape[1]
+
+    def validate(self, source: str = "capture") -> Capture:
+        """Check shapes, finiteness and solvability; raise InputError naming the field."""
+        x, K, R, C = self.x, self.K, self.R, self.C
+        if x.ndim != 3 or x.shape[2] != 2:
+            raise InputError(f"{source}: field 'x' must have shape (N, P, 2), got {x.shape}")
+        n, p = x.shape[:2]
+        if n < 2 or p < 1:
+            raise InputError(f"{source}: field 'x' needs at least 2 images and 1 point, got {x.shape}")
+        for name, arr, shape in (("K", K, (n, 3, 3)), ("R", R, (n, 3, 3)), ("C", C, (n, 3))):
+            if arr.shape != shape:
+                raise InputError(f"{source}: field '{name}' must have shape {shape}, got {arr.shape}")
+            bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1)
+            if bad.any():
+                raise InputError(
+                    f"{source}: field '{name}' is not finite for image {self._name(np.argmax(bad))}"
+                )
+        if np.isinf(x).any():
+            i = int(np.argwhere(np.isinf(x))[0, 0])
+            raise InputError(f"{source}: field 'x' has an infinite coordinate in image {self._name(i)}")
+        det = np.linalg.det(R)
+        ortho = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+        bad = (np.abs(det - 1) > 1e-6) | (ortho > 1e-6)
+        if bad.any():
+            raise InputError(f"{source}: field 'R' is not a rotation for image {self._name(np.argmax(bad))}")
+        if (np.abs(np.linalg.det(K)) < 1e-12).any():
+            raise InputError(f"{source}: field 'K' is singular for image {self._name(np.argmax(np.abs(np.linalg.det(K)) < 1e-12))}")
+        for name, arr in (("stream", self.stream), ("frame", self.frame), ("image_names", self.image_names)):
+            if arr.shape != (n,):
+                raise InputError(f"{source}: field '{name}' must have shape ({n},), got {arr.shape}")
+        if self.confidence is not None and self.confidence.shape != (n, p):
+            raise InputError(
+                f"{source}: field 'confidence' must have shape ({n}, {p}), got {self.confidence.shape}"
+            )
+        visible = self.visible
+        empty = ~visible.any(axis=1)
+        if empty.any():
+            raise InputError(f"{source}: image {self._name(np.argmax(empty))} observes no point")
+        never = ~visible.any(axis=0)
+        if never.any():
+            raise InputError(f"{source}: point {int(np.argmax(never))} is observed in no image")
+        streams = self.stream_ids
+        if np.unique(streams).size < 2:
+            raise InputError(
+                f"{source}: all {n} images belong to one stream; DLOE needs images from at least "
+                "two cameras / streams to triangulate"
+            )
+        for s in np.unique(self.stream[self.stream >= 0]):
+            frames = self.frame[self.stream == s]
+            if np.unique(frames).size != frames.size:
+                raise InputError(f"{source}: stream {s} has repeated values in field 'frame'")
+        return self
+
+    def _name(self, i: int) -> str:
+        return f"{int(i)} ('{self.image_names[int(i)]}')"
+
+    @property
+    def visible(self) -> np.ndarray:
+        """(N, P) bool: observed, finite and with positive confidence where given."""
+        vis = np.isfinite(self.x).all(axis=2)
+        if self.confidence is not None:
+            conf = np.nan_to_num(self.confidence, nan=0.0)
+            vis &= conf > 0
+        return vis
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(N, P) float observation weights: confidence where given, 1 otherwise; 0 = unobserved."""
+        w = self.visible.astype(np.float64)
+        if self.confidence is not None:
+            w *= np.clip(np.nan_to_num(self.confidence, nan=0.0), 0.0, 1.0)
+        return w
+
+    @property
+    def stream_ids(self) -> np.ndarray:
+        """(N,) int: stream ids with every lone photo (-1) given a stream id of its own."""
+        ids = self.stream.copy()
+        lone = ids < 0
+        start = (ids.max() + 1) if (~lone).any() else 0
+        ids[lone] = start + np.arange(lone.sum())
+        return ids
+
+    def rays(self) -> np.ndarray:
+        """(N, P, 3) unit viewing rays in world coordinates, ``R^T K^-1 [x; 1]``; NaN = unobserved."""
+        return pixel_rays(self.x, self.K, self.R)
+
+    def subset(self, idx: np.ndarray) -> Capture:
+        """The capture restricted to images ``idx`` (same points)."""
+        idx = np.asarray(idx)
+        return Capture(
+            x=self.x[idx], K=self.K[idx], R=self.R[idx], C=self.C[idx],
+            stream=self.stream[idx], frame=self.frame[idx],
+            confidence=None if self.confidence is None else self.confidence[idx],
+            image_names=self.image_names[idx],
+            extras={k: v[idx] for k, v in self.extras.items()
+                    if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == self.num_images},
+        )
+
+
+def pixel_rays(x: np.ndarray, K: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Unit world rays of pixels.
+
+    x (N, P, 2), K (N, 3, 3), R (N, 3, 3) world-to-camera -> (N, P, 3), NaN where x is NaN.
+    """
+    n, p = x.shape[:2]
+    h = np.concatenate([x, np.ones((n, p, 1))], axis=2)
+    cam = np.einsum("nij,npj->npi", np.linalg.inv(K), h)
+    world = np.einsum("nji,npj->npi", R, cam)
+    return world / np.linalg.norm(world, axis=2, keepdims=True)
+
+
+def project(X: np.ndarray, K: np.ndarray, R: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """Pinhole projection ``x ~ K R (X - C)``: X (N, P, 3) -> (N, P, 2)."""
+    cam = np.einsum("nij,npj->npi", R, X - C[:, None, :])
+    h = np.einsum("nij,npj->npi", K, cam)
+    return h[..., :2] / h[..., 2:3]

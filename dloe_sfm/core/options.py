@@ -1,0 +1,85 @@
+"""Solver options: the paper's and the authors' defaults, documented with their units."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from enum import Enum
+
+
+class Embedding(str, Enum):
+    """Line embedding used to turn a distance matrix into an order."""
+
+    SPECTRAL = "spectral"  # Fiedler vector of the Laplacian of affinity 1 / distance
+    MDS = "mds"  # leading eigenvector of classical MDS
+    SHP = "shp"  # approximate shortest Hamiltonian path (nearest neighbour + 2-opt)
+
+
+class Distance(str, Enum):
+    """Distance between images used for sequencing."""
+
+    ARC = "arc"  # in-stream path length + order-preserving DTW across streams
+    EUCLIDEAN = "euclidean"  # plain distance between 3D shapes
+
+
+@dataclass(kw_only=True)
+class Options:
+    """Options of :func:`dloe_sfm.reconstruct`.
+
+    Lengths are in *normalised scene units*: the solver divides the world by the median
+    camera-to-scene distance (so a camera ring of radius 3 m becomes radius 1) and multiplies
+    back at the end. All cost terms are divided by N * P (as in the authors' code).
+    """
+
+    lambda1: float = 1e-5
+    """Compactness weight (T term) on ``D_ii W_ij |X_i - X_j|^2``; normalised length^2."""
+    lambda2: float = math.inf
+    """Ray weight (O term); ``inf`` pins observed points to their rays and solves for depths."""
+    lambda3: float = 1e-7
+    """Ray-convergence weight (R term): ``sum_ijp (D_ii W_ij r_ip . r_jp)^2``, unit-free."""
+    ridge: float = 1e-9
+    """Ridge on W rows (normalised length^2): makes every row's QP strictly convex."""
+    prior_weight: float = 0.1
+    """Intra-stream chain prior: ``W = (1 - a) W_var + a W_chain`` (authors: 0.1); 0 = off."""
+    degree_floor: float = 0.5
+    """D-step: ``D = c diag(q) + (1 - c) I`` with ``sum q = N``, i.e. ``D_ii >= 1 - c``."""
+    fixed_degree: bool = True
+    """Keep D = I (skip the D-step): measured more accurate than the D-step (see the README)."""
+    end_degree: float = 0.1
+    """D_ii of the images at the two ends of the estimated time line (no neighbour on one side)."""
+    num_candidates: int = 8
+    """k: W row i may only use the k nearest other-stream images (plus its previous support)."""
+    min_ray_angle: float = 15.0
+    """Degrees: image pairs whose rays are closer than this to (anti)parallel are not neighbours."""
+    spectral_prior: bool = False
+    """Use ``(f_i - f_j)^2`` of the sequencing embedding in T during the W- and D-steps."""
+    omega: float = 1.9
+    """Over-relaxation of the X update (1 = plain alternation); steps that raise the cost are undone."""
+    resequence_every: int = 10
+    """Recompute the sequencing embedding of the spectral prior every this many iterations."""
+    distance: Distance = Distance.ARC
+    embedding: Embedding = Embedding.SHP
+    max_iterations: int = 200
+    tolerance: float = 1e-6
+    """Stop when the RMS change of X in one sweep falls below this (normalised units)."""
+    segment_events: bool = True
+    """Split the final graph into connected components (events) and solve each on its own."""
+    progress: bool = False
+    """Show a tqdm bar over the outer iterations."""
+
+    def replace(self, **changes) -> Options:
+        """A copy with some options changed (unknown names raise ValueError)."""
+        known = {f.name for f in fields(self)}
+        unknown = set(changes) - known
+        if unknown:
+            raise ValueError(f"unknown option(s): {', '.join(sorted(unknown))}")
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(changes)
+        return Options(**values)
+
+    def to_dict(self) -> dict:
+        return {
+            f.name: (getattr(self, f.name).value if isinstance(getattr(self, f.name), Enum)
+                     else getattr(self, f.name))
+            for f in fields(self)
+        }

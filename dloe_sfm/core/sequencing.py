@@ -1,0 +1,241 @@
+"""Sequencing: distances between images, line embeddings, orders (METHOD.md "Sequencing").
+
+Shapes: N images, P points, X (N, P, 3); streams / frames (N,) int.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+from scipy.stats import kendalltau
+
+from .options import Distance, Embedding
+
+
+def stream_members(streams: np.ndarray, frames: np.ndarray) -> list[np.ndarray]:
+    """Image indices of every stream in frame order."""
+    out = []
+    for s in np.unique(streams):
+        idx = np.flatnonzero(streams == s)
+        out.append(idx[np.argsort(frames[idx], kind="stable")])
+    return out
+
+
+def arc_length(F: np.ndarray) -> np.ndarray:
+    """Cumulative path length along the rows of F (m, d): (m,), starting at 0."""
+    if F.shape[0] == 0:
+        return np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(F, axis=0), axis=1))])
+
+
+def monotone_assignment(cost: np.ndarray) -> np.ndarray:
+    """Assign every row of cost (m, q) one column, columns never decreasing, minimum total cost.
+
+    Dynamic time warping where each row takes exactly one column. Returns (m,) column indices.
+    """
+    m, q = cost.shape
+    acc = np.empty_like(cost, dtype=np.float64)
+    back = np.empty((m, q), dtype=np.int64)
+    acc[0] = cost[0]
+    cols = np.arange(q)
+    for i in range(1, m):
+        prev_best = np.minimum.accumulate(acc[i - 1])
+        # argmin over k' <= k of acc[i-1]: where the running minimum was last lowered
+        is_new = np.concatenate([[True], acc[i - 1, 1:] < prev_best[:-1]])
+        back[i] = np.maximum.accumulate(np.where(is_new, cols, 0))
+        acc[i] = cost[i] + prev_best
+    path = np.empty(m, dtype=np.int64)
+    path[-1] = int(np.argmin(acc[-1]))
+    for i in range(m - 1, 0, -1):
+        path[i - 1] = back[i, path[i]]
+    return path
+
+
+def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Arc-length position on polyline B of every row of A, assigned in order.
+
+    A (m, d) a stream's shapes in frame order, B (q, d) with q >= 2 another stream's polyline.
+    Each row of A is assigned to one segment of B, the segment index never decreasing along A
+    (dynamic time warping with point-to-segment costs), and placed at the foot of its
+    perpendicular on that segment. Returns (m,) positions in B's arc length.
+    """
+    seg = np.diff(B, axis=0)  # (q-1, d)
+    seg_len2 = (seg ** 2).sum(axis=1)
+    start = B[:-1]
+    # |a - b_k - t s_k|^2 from matrix products, never an (m, q, d) temporary
+    a_dot_s = A @ seg.T - (start * seg).sum(axis=1)  # (a - b_k) . s_k
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip(a_dot_s / seg_len2, 0.0, 1.0)
+    t = np.nan_to_num(t)
+    d2 = (A ** 2).sum(axis=1)[:, None] + (start ** 2).sum(axis=1)[None] - 2 * A @ start.T
+    cost = np.sqrt(np.maximum(d2 - 2 * t * a_dot_s + t ** 2 * seg_len2, 0.0))  # (m, q-1)
+    path = monotone_assignment(cost)
+    m = A.shape[0]
+    s = arc_length(B)
+    return s[path] + t[np.arange(m), path] * np.sqrt(seg_len2[path])
+
+
+def arc_distance(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Arc distance between images, (N, N) symmetric.
+
+    Within a stream: path length of its 3D shapes between the two images. Across streams a and b:
+    each image of a is placed on b's polyline by order-preserving DTW and the distance is the arc
+    length between the positions (and vice versa), averaged over the directions available. Two lone
+    photos are compared through every stream's polyline (median). Without any stream of two or more
+    images this falls back to the Euclidean distance.
+    """
+    n = X.shape[0]
+    F = X.reshape(n, -1)
+    members = stream_members(streams, frames)
+    lines = [m for m in members if m.size >= 2]
+    if not lines:
+        return euclidean_distance(X)
+    # pos[c][i]: position of image i on polyline c
+    pos = np.empty((len(lines), n))
+    for c, idx in enumerate(lines):
+        B = F[idx]
+        for other in members:
+            if other is idx:
+                pos[c, idx] = arc_length(B)
+            else:
+                pos[c, other] = dtw_positions(F[other], B)
+    line_of = np.full(n, -1)
+    for c, idx in enumerate(lines):
+        line_of[idx] = c
+    Z = np.zeros((n, n))
+    cnt = np.zeros((n, n))
+    for c in range(len(lines)):
+        on_c = line_of == c
+        dc = np.abs(pos[c][:, None] - pos[c][None, :])
+        use = on_c[:, None] | on_c[None, :]
+        Z += np.where(use, dc, 0.0)
+        cnt += use
+    neither = cnt == 0
+    if neither.any():
+        med = np.median(np.abs(pos[:, :, None] - pos[:, None, :]), axis=0)
+        Z[neither] = med[neither]
+        cnt[neither] = 1
+    Z /= cnt
+    Z = 0.5 * (Z + Z.T)
+    np.fill_diagonal(Z, 0.0)
+    return Z
+
+
+def euclidean_distance(X: np.ndarray) -> np.ndarray:
+    """|X_i - X_j| between whole shapes, (N, N)."""
+    F = X.reshape(X.shape[0], -1)
+    sq = (F ** 2).sum(axis=1)
+    d2 = np.maximum(sq[:, None] + sq[None, :] - 2 * F @ F.T, 0.0)
+    np.fill_diagonal(d2, 0.0)
+    return np.sqrt(d2)
+
+
+def distance_matrix(X: np.ndarray, streams: np.ndarray, frames: np.ndarray,
+                    kind: Distance | str = Distance.ARC) -> np.ndarray:
+    return arc_distance(X, streams, frames) if Distance(kind) is Distance.ARC else euclidean_distance(X)
+
+
+def mds_embedding(Z: np.ndarray) -> np.ndarray:
+    """Classical MDS to one dimension: the leading eigenvector of -1/2 J Z^2 J, in Z's units."""
+    n = Z.shape[0]
+    B = Z ** 2
+    B = B - B.mean(axis=0, keepdims=True) - B.mean(axis=1, keepdims=True) + B.mean()
+    vals, vecs = sla.eigh(-0.5 * B, subset_by_index=[n - 1, n - 1])
+    return vecs[:, 0] * np.sqrt(max(vals[0], 0.0))
+
+
+def spectral_embedding(Z: np.ndarray) -> np.ndarray:
+    """Spectral ranking: Fiedler vector of the Laplacian of the affinity 1 / distance."""
+    n = Z.shape[0]
+    with np.errstate(divide="ignore"):
+        Aff = np.where(Z > 0, 1.0 / np.maximum(Z, 1e-300), 0.0)
+    np.fill_diagonal(Aff, 0.0)
+    Aff /= max(Aff.max(), 1e-300)
+    L = np.diag(Aff.sum(axis=1)) - Aff
+    _, vecs = sla.eigh(L, subset_by_index=[1, 1] if n > 1 else [0, 0])
+    return vecs[:, 0]
+
+
+def shp_embedding(Z: np.ndarray, *, max_passes: int = 50) -> np.ndarray:
+    """Approximate shortest Hamiltonian path (nearest-neighbour path, then 2-opt).
+
+    Returns every image's distance from the path's start along the path (Z's units).
+    """
+    n = Z.shape[0]
+    best_path, best_len = None, np.inf
+    starts = {int(np.argmax(Z.sum(axis=1))), int(np.argmax(Z[int(np.argmax(Z.sum(axis=1)))]))}
+    for start in starts:
+        path = _nearest_neighbour_path(Z, start)
+        path = _two_opt(Z, path, max_passes)
+        length = Z[path[:-1], path[1:]].sum()
+        if length < best_len:
+            best_path, best_len = path, length
+    f = np.empty(n)
+    f[best_path] = np.concatenate([[0.0], np.cumsum(Z[best_path[:-1], best_path[1:]])])
+    return f
+
+
+def _nearest_neighbour_path(Z: np.ndarray, start: int) -> np.ndarray:
+    n = Z.shape[0]
+    seen = np.zeros(n, dtype=bool)
+    path = [start]
+    seen[start] = True
+    for _ in range(n - 1):
+        d = np.where(seen, np.inf, Z[path[-1]])
+        nxt = int(np.argmin(d))
+        path.append(nxt)
+        seen[nxt] = True
+    return np.array(path)
+
+
+def _two_opt(Z: np.ndarray, path: np.ndarray, max_passes: int) -> np.ndarray:
+    """Open-path 2-opt: reverse path[i+1..j] while that shortens the path."""
+    n = path.size
+    if n < 4:
+        return path
+    for _ in range(max_passes * n):
+        P = path
+        a, b = P[:-1], P[1:]  # edge i: (a_i, b_i)
+        edge = Z[a, b]
+        # reversing P[i+1..j] replaces edges (i, i+1) and (j, j+1) by (i, j) and (i+1, j+1);
+        # j = n - 1 (reverse to the end) only removes edge i
+        gain = edge[:, None] + np.append(edge, 0.0)[None, 1:] - Z[a[:, None], b[None, :]]
+        gain[:, :-1] -= Z[b[:, None], b[None, 1:]]
+        i_idx, j_idx = np.triu_indices(n - 1, k=1)
+        g = gain[i_idx, j_idx]
+        best = int(np.argmax(g))
+        if g[best] <= 1e-12 * max(edge.sum(), 1e-300):
+            break
+        i, j = i_idx[best], j_idx[best] + 1
+        path = np.concatenate([P[: i + 1], P[i + 1: j + 1][::-1], P[j + 1:]])
+    return path
+
+
+def line_embedding(Z: np.ndarray, kind: Embedding | str = Embedding.MDS) -> np.ndarray:
+    kind = Embedding(kind)
+    if kind is Embedding.MDS:
+        return mds_embedding(Z)
+    if kind is Embedding.SPECTRAL:
+        return spectral_embedding(Z)
+    return shp_embedding(Z)
+
+
+def orient(f: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """Flip f so that it increases with frame number inside streams (when streams say anything)."""
+    score = 0.0
+    for idx in stream_members(streams, frames):
+        if idx.size >= 2:
+            score += np.sum(np.sign(np.diff(f[idx])))
+    return -f if score < 0 else f
+
+
+def order_from_embedding(f: np.ndarray) -> np.ndarray:
+    return np.argsort(f, kind="stable")
+
+
+def kendall_tau(order: np.ndarray, times: np.ndarray) -> float:
+    """|Kendall tau| between an estimated order (image indices, earliest first) and true times."""
+    rank = np.empty(order.size)
+    rank[order] = np.arange(order.size)
+    tau = kendalltau(rank, times).statistic
+    return float(abs(tau)) if np.isfinite(tau) else 0.0

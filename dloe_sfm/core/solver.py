@@ -1,0 +1,254 @@
+"""Alternating convex search for DLOE (Xu & Dunn, ICCV 2019) and the true-order oracle."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from tqdm.auto import tqdm
+
+from .capture import Capture
+from .events import segment_events
+from .init import fill_missing, pseudo_triangulate
+from .options import Embedding, Options
+from .result import Result
+from .sequencing import (
+    distance_matrix,
+    line_embedding,
+    mds_embedding,
+    order_from_embedding,
+    orient,
+)
+from .steps import (
+    Problem,
+    chain_matrix,
+    d_step,
+    full_weights,
+    select_candidates,
+    temporal_ends,
+    total_cost,
+    w_step,
+    x_step,
+)
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def _normalisation(capture: Capture, X0: np.ndarray) -> tuple[np.ndarray, float]:
+    """Origin and scale of the normalised frame: scene centroid, median camera-to-point distance."""
+    origin = np.nanmean(X0.reshape(-1, 3), axis=0)
+    dist = np.linalg.norm(X0 - capture.C[:, None, :], axis=2)
+    scale = float(np.nanmedian(dist))
+    return origin, scale if np.isfinite(scale) and scale > 0 else 1.0
+
+
+def build_problem(capture: Capture, options: Options, origin: np.ndarray, scale: float) -> Problem:
+    """The fixed data of a solve in normalised units."""
+    rays = capture.rays()
+    weights = capture.weights
+    rays[weights <= 0] = np.nan
+    streams = capture.stream_ids
+    view = np.nanmean(rays, axis=1)
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    chain = chain_matrix(streams, capture.frame)
+    has_chain = np.asarray(chain.sum(axis=1)).ravel() > 0
+    return Problem(rays=rays, C=(capture.C - origin) / scale, weights=weights, streams=streams,
+                   view_dirs=view, chain=chain, prior=np.where(has_chain, options.prior_weight, 0.0))
+
+
+def initialise(capture: Capture, options: Options) -> np.ndarray:
+    """Pseudo-triangulated (N, P, 3) shapes in world units (unobserved points interpolated)."""
+    rays = capture.rays()
+    rays[capture.weights <= 0] = np.nan
+    depths, _ = pseudo_triangulate(rays, capture.C, capture.stream_ids, capture.frame,
+                                   min_angle=options.min_ray_angle)
+    X0 = capture.C[:, None, :] + depths[..., None] * rays
+    return fill_missing(X0, capture.stream_ids, capture.frame)
+
+
+def _degrees(f: np.ndarray, prob: Problem, options: Options) -> np.ndarray:
+    """Fixed degrees: 1, and ``end_degree`` for the images at the ends of the time line."""
+    D = np.ones(f.size)
+    D[temporal_ends(f, prob.streams)] = options.end_degree
+    return D
+
+
+def _sequence(X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """(prior embedding in length units, final line embedding) oriented by the streams.
+
+    The prior needs lengths: the spectral ranking's Fiedler vector is unit-free, so then the prior
+    falls back to classical MDS of the same distances.
+    """
+    Z = distance_matrix(X, prob.streams, frames, options.distance)
+    f = orient(line_embedding(Z, options.embedding), prob.streams, frames)
+    if options.embedding is Embedding.SPECTRAL:
+        return orient(mds_embedding(Z), prob.streams, frames), f
+    return f, f
+
+
+def reconstruct(capture: Capture, options: Options | None = None) -> Result:
+    """Estimate every image's 3D points and the images' temporal graph and order.
+
+    ``capture`` must be valid (``Capture.validate``). Returns a :class:`Result` in world units.
+    With ``options.segment_events`` the final graph is split into connected components and each
+    event is solved again on its own.
+    """
+    options = options or Options()
+    result = _solve(capture, options)
+    if options.segment_events and result.events.max() > 0:
+        result = _solve_events(capture, options, result)
+    return result
+
+
+def _solve_events(capture: Capture, options: Options, joint: Result) -> Result:
+    start = time.perf_counter()
+    n, p = capture.num_images, capture.num_points
+    X = np.empty((n, p, 3))
+    embedding = np.empty(n)
+    rows, cols, avals, wvals = [], [], [], []
+    D = np.empty(n)
+    order = []
+    offset = 0.0
+    sub_options = options.replace(segment_events=False)
+    for e in range(int(joint.events.max()) + 1):
+        idx = np.flatnonzero(joint.events == e)
+        logger.info("event %d: %d images", e, idx.size)
+        sub = capture.subset(idx)
+        if np.unique(sub.stream_ids).size < 2 or idx.size < 3:
+            X[idx], embedding[idx], D[idx] = joint.X[idx], joint.embedding[idx], joint.D[idx]
+            A, W = joint.A[idx][:, idx].tocoo(), joint.W[idx][:, idx].tocoo()
+            sub_order = idx[np.argsort(joint.embedding[idx])]
+        else:
+            r = _solve(sub, sub_options)
+            X[idx], D[idx] = r.X, r.D
+            embedding[idx] = r.embedding - r.embedding.min() + offset
+            A, W = r.A.tocoo(), r.W.tocoo()
+            sub_order = idx[r.order]
+        offset = embedding[idx].max() + 1.0
+        rows.append(idx[A.row])
+        cols.append(idx[A.col])
+        avals.append(A.data)
+        wvals.append((idx[W.row], idx[W.col], W.data))
+        order.append(sub_order)
+    A = sp.csr_matrix((np.concatenate(avals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
+    W = sp.csr_matrix((np.concatenate([w[2] for w in wvals]),
+                       (np.concatenate([w[0] for w in wvals]), np.concatenate([w[1] for w in wvals]))),
+                      shape=(n, n))
+    timings = dict(joint.timings)
+    timings["events"] = time.perf_counter() - start
+    return Result(X=X, order=np.concatenate(order), A=A, W=W, D=D, events=joint.events,
+                  embedding=embedding, cost_history=joint.cost_history,
+                  change_history=joint.change_history, nit=joint.nit, success=joint.success,
+                  message=joint.message, seconds=joint.seconds + timings["events"], timings=timings,
+                  scale=joint.scale)
+
+
+def _solve(capture: Capture, options: Options) -> Result:
+    t_start = time.perf_counter()
+    timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0}
+    n, p = capture.num_images, capture.num_points
+    X_world = initialise(capture, options)
+    origin, scale = _normalisation(capture, X_world)
+    prob = build_problem(capture, options, origin, scale)
+    X = (X_world - origin) / scale
+    timings["init"] = time.perf_counter() - t_start
+    lam = {"lambda1": options.lambda1, "lambda2": options.lambda2, "lambda3": options.lambda3}
+    W_var: sp.csr_matrix | None = None
+    t0 = time.perf_counter()
+    prior_f, f = _sequence(X, prob, capture.frame, options)
+    timings["sequencing"] += time.perf_counter() - t0
+    D = _degrees(f, prob, options)
+    costs, changes = [], []
+    best = None
+    success, message = False, f"stopped after max_iterations = {options.max_iterations}"
+    bar = tqdm(range(options.max_iterations), desc="DLOE", unit="it", disable=not options.progress,
+               leave=False)
+    for it in bar:
+        t0 = time.perf_counter()
+        feats = prior_f[:, None] if options.spectral_prior else X.reshape(n, -1)
+        cand = select_candidates(feats, prob, options.num_candidates, min_angle=options.min_ray_angle,
+                                 keep=W_var)
+        W_var = w_step(X, D, cand, prob, lambda1=options.lambda1, lambda3=options.lambda3,
+                       ridge=options.ridge, embedding=prior_f if options.spectral_prior else None)
+        W = full_weights(W_var, prob)
+        t1 = time.perf_counter()
+        if not options.fixed_degree:
+            D = d_step(X, W, prob, lambda1=options.lambda1, lambda3=options.lambda3,
+                       floor=options.degree_floor,
+                       embedding=prior_f if options.spectral_prior else None)
+            D[temporal_ends(f, prob.streams)] = options.end_degree
+        t2 = time.perf_counter()
+        X_new = x_step(W, D, prob, lambda1=options.lambda1, lambda2=options.lambda2, X_prev=X)
+        t3 = time.perf_counter()
+        timings["w_step"] += t1 - t0
+        timings["d_step"] += t2 - t1
+        timings["x_step"] += t3 - t2
+        cost = total_cost(X_new, W, D, prob, **lam)["total"]
+        change = float(np.sqrt(np.mean((X_new - X) ** 2)))
+        costs.append(cost)
+        changes.append(change)
+        bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
+        logger.debug("iteration %d: cost %.6e, rms change %.3e", it, cost, change)
+        if best is None or cost <= best[0]:
+            best = (cost, X_new.copy(), W_var, W, D.copy())
+            # over-relaxation: alternation creeps along smooth depth errors that W keeps
+            # re-fitting; stepping omega times as far (affinely, so points stay on their rays)
+            # cuts the number of sweeps; a step that raises the cost is undone below
+            X = X + options.omega * (X_new - X)
+        else:
+            X, W_var, D = best[1].copy(), best[2], best[4].copy()
+        if change < options.tolerance:
+            success, message = True, f"converged: rms change {change:.2e} < {options.tolerance:.0e}"
+            break
+        if (it + 1) % options.resequence_every == 0:
+            t0 = time.perf_counter()
+            prior_f, f = _sequence(X, prob, capture.frame, options)
+            timings["sequencing"] += time.perf_counter() - t0
+            if options.fixed_degree:
+                D = _degrees(f, prob, options)
+    bar.close()
+    _, X, W_var, W, D = best
+    t0 = time.perf_counter()
+    _, f = _sequence(X, prob, capture.frame, options)
+    timings["sequencing"] += time.perf_counter() - t0
+    A = sp.csr_matrix(sp.diags(D) @ W)
+    events = segment_events(A)
+    X_out = X * scale + origin
+    return Result(X=X_out, order=order_from_embedding(f), A=A, W=W, D=D, events=events,
+                  embedding=f * scale,
+                  cost_history=np.array(costs), change_history=np.array(changes), nit=len(costs),
+                  success=success, message=message, seconds=time.perf_counter() - t_start,
+                  timings=timings, scale=scale)
+
+
+def oracle_reconstruct(capture: Capture, times: np.ndarray, *, lambda1: float = 0.0,
+                       lambda2: float = np.inf) -> np.ndarray:
+    """DLOE's X-step with the true temporal chain as W: the accuracy reference.
+
+    Every image is linked to its temporal predecessor and successor among all images, with
+    barycentric weights from the true times (so constant-velocity motion is reproduced exactly).
+    The first and last images have no neighbour on one side: their rows get D = 0, and they are
+    placed by their neighbours' rows. Returns (N, P, 3) in world units.
+    """
+    n = capture.num_images
+    order = np.argsort(times, kind="stable")
+    t = np.asarray(times, dtype=np.float64)[order]
+    prev, mid, nxt = order[:-2], order[1:-1], order[2:]
+    span = t[2:] - t[:-2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w_prev = np.where(span > 0, (t[2:] - t[1:-1]) / span, 0.5)
+    rows = np.concatenate([mid, mid])
+    cols = np.concatenate([prev, nxt])
+    vals = np.concatenate([w_prev, 1.0 - w_prev])
+    W = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+    options = Options()
+    X0 = initialise(capture, options)
+    origin, scale = _normalisation(capture, X0)
+    prob = build_problem(capture, options, origin, scale)
+    D = np.ones(n)
+    D[order[[0, -1]]] = 0.0
+    X = x_step(W, D, prob, lambda1=lambda1, lambda2=lambda2, X_prev=(X0 - origin) / scale)
+    return X * scale + origin

@@ -1,0 +1,359 @@
+"""The three convex steps of alternating convex search (METHOD.md "Cost") and the cost itself.
+
+Shapes: N images, P points; X (N, P, 3); rays (N, P, 3) unit with NaN = unobserved; C (N, 3).
+All graph matrices are scipy CSR (N, N). Cost terms are divided by N * P (authors' convention):
+
+    S = |D (I - W) X|^2,  T = l1 sum_ij D_ii W_ij dist_ij,  O = l2 sum_np |(X_np - C_n) x r_np|^2,
+    R = l3 sum_ij (D_ii W_ij)^2 c_ij,  c_ij = sum_p (r_ip . r_jp)^2 over points both observe.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from .simplex_qp import solve_simplex_qp
+
+
+@dataclass(kw_only=True)
+class Problem:
+    """Fixed data of one solve, in normalised units."""
+
+    rays: np.ndarray  # (N, P, 3), NaN = unobserved
+    C: np.ndarray  # (N, 3)
+    weights: np.ndarray  # (N, P) observation weights, 0 = unobserved
+    streams: np.ndarray  # (N,) stream ids, lone photos already given their own
+    view_dirs: np.ndarray  # (N, 3) mean viewing direction of each image
+    chain: sp.csr_matrix  # (N, N) intra-stream chain prior (rows sum to 1 or 0)
+    prior: np.ndarray  # (N,) weight a_i of the chain prior in row i (0 for lone photos)
+
+    @property
+    def visible(self) -> np.ndarray:
+        return self.weights > 0
+
+
+def chain_matrix(streams: np.ndarray, frames: np.ndarray) -> sp.csr_matrix:
+    """W_chain: 1/2, 1/2 to the previous / next image of the same stream.
+
+    A stream's first and last images get an empty row (the authors give them weight 1 to their one
+    neighbour, which pulls a moving point back towards it: a bias measured at the clip ends).
+    """
+    n = streams.size
+    order = np.lexsort((frames, streams))
+    s = streams[order]
+    interior = np.zeros(n, dtype=bool)
+    interior[1:-1] = (s[1:-1] == s[:-2]) & (s[1:-1] == s[2:])
+    mid = order[interior]
+    prev = order[np.flatnonzero(interior) - 1]
+    nxt = order[np.flatnonzero(interior) + 1]
+    rows = np.concatenate([mid, mid])
+    cols = np.concatenate([prev, nxt])
+    return sp.csr_matrix((np.full(rows.size, 0.5), (rows, cols)), shape=(n, n))
+
+
+def temporal_ends(f: np.ndarray, streams: np.ndarray) -> np.ndarray:
+    """(N,) bool: images with no image of another stream before them, or none after, along f.
+
+    Their W rows could only extrapolate (a convex combination of later, or of earlier, shapes),
+    so they get no smoothness row of their own; their neighbours' rows still place them.
+    """
+    ids, inv = np.unique(streams, return_inverse=True)
+    if ids.size < 2:
+        return np.zeros(f.size, dtype=bool)
+    lo = np.full(ids.size, np.inf)
+    hi = np.full(ids.size, -np.inf)
+    np.minimum.at(lo, inv, f)
+    np.maximum.at(hi, inv, f)
+
+    def others(vals: np.ndarray, pick) -> np.ndarray:
+        # the extreme over all streams but one's own: best and second best suffice
+        order = pick(vals)
+        first, second = order[0], order[1]
+        return np.where(inv == first, vals[second], vals[first])
+
+    return (f < others(lo, np.argsort)) | (f > others(hi, lambda v: np.argsort(-v)))
+
+
+def full_weights(W_var: sp.csr_matrix, prob: Problem) -> sp.csr_matrix:
+    """W = (1 - a_i) W_var + a_i W_chain row by row."""
+    return sp.csr_matrix(sp.diags(1.0 - prob.prior) @ W_var + sp.diags(prob.prior) @ prob.chain)
+
+
+def ray_coherence(rays: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """c_ij = sum_p (r_ip . r_jp)^2 over points observed in both images, for pairs (rows, cols)."""
+    r = np.nan_to_num(rays)
+    out = np.empty(rows.size)
+    step = 1 << 16
+    for lo in range(0, rows.size, step):
+        a, b = rows[lo:lo + step], cols[lo:lo + step]
+        out[lo:lo + step] = (np.einsum("epk,epk->ep", r[a], r[b]) ** 2).sum(axis=1)
+    return out
+
+
+def select_candidates(features: np.ndarray, prob: Problem, k: int, *, min_angle: float,
+                      keep: sp.csr_matrix | None = None) -> np.ndarray:
+    """k nearest admissible neighbours of every image in ``features`` space, (N, k') int, -1 = pad.
+
+    Admissible: another stream, and viewing directions at least ``min_angle`` degrees from
+    (anti)parallel (the static-camera / opposite-camera degeneracy). With a 1-D ``features``
+    (a time-line embedding) the k are split evenly before and after the image, so W interpolates
+    between temporal neighbours instead of extrapolating from one side. The support of ``keep``
+    (previous W) is always included so a W-step never increases the cost.
+    """
+    n = features.shape[0]
+    cos_max = np.cos(np.deg2rad(min_angle))
+
+    def admissible(rows: np.ndarray, nb: np.ndarray) -> np.ndarray:
+        ok = prob.streams[nb] != prob.streams[rows, None]
+        ok &= np.abs(np.einsum("ak,abk->ab", prob.view_dirs[rows], prob.view_dirs[nb])) < cos_max
+        return ok
+
+    if features.shape[1] == 1:
+        found = _bracket(features[:, 0], k, admissible)
+    else:
+        found = _nearest(features, k, admissible)
+    if keep is not None and keep.nnz:
+        width = k + int(np.diff(keep.indptr).max())
+        merged = np.full((n, width), -1)
+        merged[:, :k] = found
+        coo = keep.tocoo()
+        order = np.lexsort((coo.col, coo.row))
+        r, c = coo.row[order], coo.col[order]
+        pos = np.arange(r.size) - keep.indptr[r]
+        merged[r, k + pos] = c
+        # drop duplicates (a previous neighbour that is also among the k nearest)
+        srt = np.sort(merged, axis=1)
+        dup = np.zeros_like(srt, dtype=bool)
+        dup[:, 1:] = (srt[:, 1:] == srt[:, :-1]) & (srt[:, 1:] >= 0)
+        srt[dup] = -1
+        found = -np.sort(-srt, axis=1)
+        found = found[:, : int((found >= 0).sum(axis=1).max())]
+    return found
+
+
+def _nearest(features: np.ndarray, k: int, admissible) -> np.ndarray:
+    """(N, k) indices of the k nearest admissible rows of features (-1 = none left)."""
+    n = features.shape[0]
+    tree = cKDTree(features)
+    found = np.full((n, k), -1)
+    q = min(n, 4 * k + 1)
+    pending = np.arange(n)
+    while pending.size:
+        _, nb = tree.query(features[pending], k=q)
+        nb = np.atleast_2d(nb)
+        ok = nb < n
+        nbc = np.where(ok, nb, 0)
+        ok &= admissible(pending, nbc)
+        enough = (ok.sum(axis=1) >= k) | (q >= n)
+        sel = pending[enough]
+        idx = np.argsort(~ok[enough], axis=1, kind="stable")[:, :k]
+        valid = np.take_along_axis(ok[enough], idx, axis=1)
+        found[sel] = np.where(valid, np.take_along_axis(nbc[enough], idx, axis=1), -1)
+        pending = pending[~enough]
+        q = min(n, 4 * q)
+    return found
+
+
+def _bracket(f: np.ndarray, k: int, admissible) -> np.ndarray:
+    """(N, k) indices: the ceil(k/2) nearest admissible images before f_i and floor(k/2) after."""
+    n = f.size
+    order = np.argsort(f, kind="stable")
+    pos = np.empty(n, dtype=np.int64)
+    pos[order] = np.arange(n)
+    halves = ((k + 1) // 2, -1), (k // 2, 1)
+    found = np.full((n, k), -1)
+    col = 0
+    for want, step in halves:
+        if want == 0:
+            continue
+        got = np.zeros(n, dtype=np.int64)
+        window = 4 * want + 4
+        pending = np.arange(n)
+        offset = 1
+        while pending.size:
+            steps = offset + np.arange(window)
+            p = pos[pending, None] + step * steps[None, :]
+            inside = (p >= 0) & (p < n)
+            nb = order[np.clip(p, 0, n - 1)]
+            ok = inside & admissible(pending, nb)
+            for c in range(window):
+                take = ok[:, c] & (got[pending] < want)
+                rows = pending[take]
+                found[rows, col + got[rows]] = nb[take, c]
+                got[rows] += 1
+            more = (got[pending] < want) & inside[:, -1]
+            pending = pending[more]
+            offset += window
+        col += want
+    return found
+
+
+def w_step(X: np.ndarray, D: np.ndarray, cand: np.ndarray, prob: Problem, *, lambda1: float,
+           lambda3: float, ridge: float, embedding: np.ndarray | None = None) -> sp.csr_matrix:
+    """Optimal W_var rows on their candidate sets (each row a QP on the simplex, solved exactly).
+
+    Row i minimises, with W = (1 - a) W_var + a W_chain and everything else fixed:
+    ``|X_i - (W X)_i|^2 + (l1 / D_ii) sum_j W_ij dist_ij + l3 sum_j W_ij^2 c_ij + ridge |w|^2``,
+    where dist_ij = (f_i - f_j)^2 with an embedding f (spectral prior) or |X_i - X_j|^2.
+    Returns W_var (N, N) CSR with rows on the simplex.
+    """
+    n = X.shape[0]
+    Xf = X.reshape(n, -1)
+    a = prob.prior
+    mask = cand >= 0
+    cc = np.where(mask, cand, 0)
+    target = Xf - a[:, None] * (prob.chain @ Xf)  # X_i - a (W_chain X)_i
+    E = target[:, :, None] - (1.0 - a)[:, None, None] * np.transpose(Xf[cc], (0, 2, 1))  # (N, 3P, k)
+    H = np.einsum("nfi,nfj->nij", E, E)
+    if embedding is None:
+        dist = ((Xf[:, None, :] - Xf[cc]) ** 2).sum(axis=2)
+    else:
+        dist = (embedding[:, None] - embedding[cc]) ** 2
+    rows = np.repeat(np.arange(n), cand.shape[1])
+    coh = ray_coherence(prob.rays, rows, cc.ravel()).reshape(cand.shape)
+    scale = np.trace(H, axis1=1, axis2=2) / cand.shape[1]
+    diag = lambda3 * (1.0 - a[:, None]) ** 2 * coh + ridge + 1e-12 * scale[:, None]
+    H[:, np.arange(cand.shape[1]), np.arange(cand.shape[1])] += diag
+    # a row with D_ii = 0 carries no cost; any simplex point will do, keep the T-term ranking
+    g = (lambda1 / (2.0 * np.where(D > 0, D, 1.0)))[:, None] * (1.0 - a[:, None]) * dist
+    w = solve_simplex_qp(H, g, mask)
+    keep = mask & (w > 0)
+    return sp.csr_matrix((w[keep], (np.nonzero(keep)[0], cc[keep])), shape=(n, n))
+
+
+def row_terms(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda3: float,
+              embedding: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-image pieces of the cost as functions of D: S_i = d_i^2 s_i, T_i = d_i t_i, R_i = d_i^2 rho_i."""
+    n = X.shape[0]
+    Xf = X.reshape(n, -1)
+    s = ((Xf - W @ Xf) ** 2).sum(axis=1)
+    coo = W.tocoo()
+    if embedding is None:
+        dist = ((Xf[coo.row] - Xf[coo.col]) ** 2).sum(axis=1)
+    else:
+        dist = (embedding[coo.row] - embedding[coo.col]) ** 2
+    t = np.bincount(coo.row, coo.data * dist, minlength=n)
+    rho = np.zeros(n)
+    if lambda3 > 0:
+        coh = ray_coherence(prob.rays, coo.row, coo.col)
+        rho = np.bincount(coo.row, coo.data ** 2 * coh, minlength=n)
+    return s, t, rho
+
+
+def d_step(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda1: float, lambda3: float,
+           floor: float, embedding: np.ndarray | None = None) -> np.ndarray:
+    """Optimal degrees: min sum_i d_i^2 (s_i + l3 rho_i) + l1 d_i t_i s.t. sum d = N, d >= floor.
+
+    Separable with one equality constraint, solved exactly by water-filling on its multiplier:
+    d_i(mu) = max(floor, (mu - l1 t_i) / (2 a_i)), with mu found by bisection.
+    """
+    n = X.shape[0]
+    s, t, rho = row_terms(X, W, prob, lambda3=lambda3, embedding=embedding)
+    quad = s + lambda3 * rho
+    quad = np.maximum(quad, 1e-12 * max(quad.max(), 1e-300))
+    lin = lambda1 * t
+    if floor * n >= n:
+        return np.full(n, 1.0)
+
+    def degrees(mu: float) -> np.ndarray:
+        return np.maximum(floor, (mu - lin) / (2.0 * quad))
+
+    lo = float((lin + 2 * quad * floor).min())  # here every d_i sits on the floor
+    hi = float((lin + 2 * quad * n).max())  # here every d_i >= n
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if degrees(mid).sum() > n:
+            hi = mid
+        else:
+            lo = mid
+        if hi - lo <= 1e-15 * max(abs(hi), 1e-300):
+            break
+    return degrees(0.5 * (lo + hi))
+
+
+def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr_matrix:
+    """Q = (D (I - W))^T D (I - W) + l1 M, with M the Laplacian form of sum_ij A_ij |X_i - X_j|^2."""
+    n = W.shape[0]
+    L = sp.diags(D) @ (sp.identity(n, format="csr") - W)
+    A = sp.diags(D) @ W
+    deg = np.asarray(A.sum(axis=1)).ravel() + np.asarray(A.sum(axis=0)).ravel()
+    M = sp.diags(deg) - A - A.T
+    return sp.csr_matrix(L.T @ L + lambda1 * M)
+
+
+def x_step(W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float, lambda2: float,
+           X_prev: np.ndarray) -> np.ndarray:
+    """Optimal X for fixed W, D: per point p a sparse linear system.
+
+    With ``lambda2 = inf`` observed points are pinned to their rays, ``X_np = C_n + l_np r_np``,
+    and only the depths l_np (plus the 3 coordinates of unobserved points) are unknown. Otherwise
+    the O term ``l2 w_np |(X_np - C_n) x r_np|^2`` joins the smoothness form Q. X_prev fills in
+    points no equation reaches (never the case on a connected graph).
+    """
+    n, p = prob.rays.shape[:2]
+    Q = smoothness_matrix(W, D, lambda1)
+    Q3 = sp.kron(Q, sp.identity(3), format="csr")
+    vis = prob.visible
+    r0 = np.nan_to_num(prob.rays)
+    X = np.empty((n, p, 3))
+    hard = np.isinf(lambda2)
+    reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
+    for j in range(p):
+        if hard:
+            obs = vis[:, j]
+            # X_vec (3N) = c + B z: one depth column per observed image, 3 unit columns otherwise
+            n_obs = int(obs.sum())
+            col_of = np.empty(n, dtype=np.int64)
+            col_of[obs] = np.arange(n_obs)
+            miss = np.flatnonzero(~obs)
+            col_of[miss] = n_obs + 3 * np.arange(miss.size)
+            rows_o = (3 * np.flatnonzero(obs)[:, None] + np.arange(3)).ravel()
+            cols_o = np.repeat(col_of[obs], 3)
+            vals_o = r0[obs, j].ravel()
+            rows_m = (3 * miss[:, None] + np.arange(3)).ravel()
+            cols_m = (col_of[miss][:, None] + np.arange(3)).ravel()
+            Bm = sp.csr_matrix(
+                (np.concatenate([vals_o, np.ones(rows_m.size)]),
+                 (np.concatenate([rows_o, rows_m]), np.concatenate([cols_o, cols_m]))),
+                shape=(3 * n, n_obs + 3 * miss.size))
+            c = np.where(obs[:, None], prob.C, 0.0).ravel()
+            H = sp.csc_matrix(Bm.T @ Q3 @ Bm)
+            rhs = -(Bm.T @ (Q3 @ c))
+        else:
+            wgt = lambda2 * prob.weights[:, j]
+            rr = r0[:, j]
+            P_perp = np.eye(3)[None] - rr[:, :, None] * rr[:, None, :]  # (N, 3, 3)
+            O = sp.block_diag(list(wgt[:, None, None] * P_perp), format="csr")
+            H = sp.csc_matrix(Q3 + O)
+            rhs = O @ prob.C.ravel()
+            c = np.zeros(3 * n)
+            Bm = None
+        H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
+        # symmetric mode + minimum degree on A^T + A: ~10x faster than SuperLU's defaults here
+        lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                       options={"SymmetricMode": True})
+        z = lu.solve(rhs)
+        X[:, j] = (c + (Bm @ z if Bm is not None else z)).reshape(n, 3)
+    bad = ~np.isfinite(X)
+    X[bad] = X_prev[bad]
+    return X
+
+
+def total_cost(X: np.ndarray, W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float,
+               lambda2: float, lambda3: float) -> dict[str, float]:
+    """The four terms S, T, O, R (Euclidean T) and their sum, each divided by N * P."""
+    n, p = X.shape[:2]
+    s, t, rho = row_terms(X, W, prob, lambda3=lambda3)
+    terms = {"S": float((D ** 2 * s).sum()), "T": lambda1 * float((D * t).sum()),
+             "R": lambda3 * float((D ** 2 * rho).sum()), "O": 0.0}
+    if np.isfinite(lambda2):
+        r0 = np.nan_to_num(prob.rays)
+        cross = np.cross(X - prob.C[:, None, :], r0)
+        terms["O"] = lambda2 * float((prob.weights * (cross ** 2).sum(axis=2)).sum())
+    terms = {k: v / (n * p) for k, v in terms.items()}
+    terms["total"] = sum(terms.values())
+    return terms

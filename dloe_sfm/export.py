@@ -1,0 +1,285 @@
+"""Workspace outputs (INTERFACES.md section 4): point clouds, skeletons, trajectories, report.
+
+Everything is written into a temporary sibling of the output folder and renamed when complete, so a
+failed export never leaves a half-written folder behind. open3d is used here and nowhere else.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import re
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+from tqdm import tqdm
+
+from .core.capture import Capture, project
+from .core.result import Result
+from .errors import InputError
+from .io import atomic_path, save_npz
+
+if TYPE_CHECKING:
+    from .keypoints.base import Layout
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def reprojection_errors(capture: Capture, X: np.ndarray) -> np.ndarray:
+    """Pixel distance between observed and reprojected points.
+
+    X (N, P, 3) world points -> (N, P) float pixels under the capture's pinhole ``K R (X - C)``;
+    NaN where the point is not observed (``capture.visible``) or X is not finite.
+    """
+    reproj = project(X, capture.K, capture.R, capture.C)
+    err = np.linalg.norm(reproj - capture.x, axis=2)
+    err[~capture.visible] = np.nan
+    return err
+
+
+def error_stats(errors: np.ndarray) -> dict[str, float | int | None]:
+    """Summary of pixel errors (any shape, NaN ignored): count, mean, rms, median, p90, max."""
+    e = np.asarray(errors, dtype=np.float64).ravel()
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return {"count": 0, "mean": None, "rms": None, "median": None, "p90": None, "max": None}
+    return {
+        "count": int(e.size),
+        "mean": float(e.mean()),
+        "rms": float(np.sqrt(np.mean(e**2))),
+        "median": float(np.median(e)),
+        "p90": float(np.percentile(e, 90)),
+        "max": float(e.max()),
+    }
+
+
+def point_colors(num_points: int) -> np.ndarray:
+    """(P, 3) uint8: one distinct, stable colour per point id (golden-ratio hues)."""
+    hue = (np.arange(num_points) * 0.618033988749895) % 1.0
+    # HSV -> RGB with s = 0.75, v = 0.95
+    k = (np.array([5.0, 3.0, 1.0])[None, :] + hue[:, None] * 6.0) % 6.0
+    rgb = 0.95 - 0.95 * 0.75 * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
+    return np.round(rgb * 255).astype(np.uint8)
+
+
+def frame_file_stem(rank: int, image_name: str, num_images: int) -> str:
+    """``NNNNN_<stem>``: zero-padded rank, then the image name without extension, with ``/``
+    and other characters unsafe in file names replaced by ``_`` (``cam01/0012.jpg`` ->
+    ``cam01_0012``: a bare stem would collide across camera folders)."""
+    width = max(5, len(str(max(num_images - 1, 0))))
+    stem = str(Path(image_name).with_suffix("")).replace("\\", "/")
+    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", stem).strip("_") or "image"
+    return f"{rank:0{width}d}_{stem}"
+
+
+def write_point_cloud(path: Path, xyz: np.ndarray, *, colors: np.ndarray | None = None,
+                      attributes: dict[str, np.ndarray] | None = None) -> Path:
+    """Binary PLY of points xyz (M, 3) float64, colors (M, 3) uint8, and extra per-point
+    attributes (M,) int32 / float32 / uint8 (custom PLY vertex properties; open3d reads them)."""
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(xyz, dtype=np.float64)))
+    if colors is not None:
+        cloud.point.colors = o3d.core.Tensor(np.ascontiguousarray(colors, dtype=np.uint8))
+    for name, values in (attributes or {}).items():
+        cloud.point[name] = o3d.core.Tensor(np.ascontiguousarray(values)[:, None])
+    with atomic_path(path) as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
+            raise OSError(f"{path}: open3d could not write the point cloud")
+    return path
+
+
+def write_line_set(path: Path, xyz: np.ndarray, lines: np.ndarray, colors: np.ndarray) -> Path:
+    """Binary PLY line set: vertices xyz (M, 3), lines (L, 2) indices, colors (L, 3) uint8."""
+    line_set = o3d.geometry.LineSet(
+        o3d.utility.Vector3dVector(np.asarray(xyz, dtype=np.float64)),
+        o3d.utility.Vector2iVector(np.asarray(lines, dtype=np.int32)),
+    )
+    line_set.colors = o3d.utility.Vector3dVector(np.asarray(colors, dtype=np.float64) / 255.0)
+    with atomic_path(path) as tmp:
+        if not o3d.io.write_line_set(str(tmp), line_set, write_ascii=False):
+            raise OSError(f"{path}: open3d could not write the line set")
+    return path
+
+
+def _json_ready(value):
+    """Numbers, arrays and paths as plain JSON values; NaN / inf become null."""
+    if isinstance(value, dict):
+        return {str(k): _json_ready(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _json_ready(value.tolist())
+    if isinstance(value, np.generic):
+        return _json_ready(value.item())
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def _event_summaries(capture: Capture, result: Result, errors: np.ndarray) -> list[dict]:
+    rank = result.rank
+    summaries = []
+    for event in np.unique(result.events):
+        members = np.flatnonzero(result.events == event)
+        members = members[np.argsort(rank[members])]
+        centroid = np.nanmean(result.X[members], axis=1)
+        steps = np.linalg.norm(np.diff(centroid, axis=0), axis=1)
+        pts = result.X[members].reshape(-1, 3)
+        extent = np.nanmax(pts, axis=0) - np.nanmin(pts, axis=0)
+        summaries.append({
+            "event": int(event),
+            "num_images": int(members.size),
+            "streams": sorted({int(s) for s in capture.stream_ids[members]}),
+            "first_image": str(capture.image_names[members[0]]),
+            "last_image": str(capture.image_names[members[-1]]),
+            "ranks": [int(rank[members[0]]), int(rank[members[-1]])],
+            "centroid_path_length": float(np.nansum(steps)),
+            "extent": extent.tolist(),
+            "reprojection_error_px": error_stats(errors[members]),
+        })
+    return summaries
+
+
+def _check_shapes(capture: Capture, result: Result) -> None:
+    n, p = capture.num_images, capture.num_points
+    if result.X.shape != (n, p, 3):
+        raise InputError(f"result: field 'X' must have shape ({n}, {p}, 3), got {result.X.shape}")
+    if sorted(result.order.tolist()) != list(range(n)):
+        raise InputError(f"result: field 'order' is not a permutation of the {n} images")
+    if result.events.shape != (n,):
+        raise InputError(
+            f"result: field 'events' must have shape ({n},), got {result.events.shape}"
+        )
+
+
+def write_outputs(folder: Path, capture: Capture, result: Result, *,
+                  static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
+                  layout: Layout | None = None, report: dict | None = None) -> dict:
+    """Write the section-4 files into the existing folder ``folder`` (not atomic on its own).
+
+    static_xyz (M, 3) float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries
+    (inputs, parameters, stage timings, ...) are merged into ``report.json``. Returns the report.
+    """
+    _check_shapes(capture, result)
+    folder = Path(folder)
+    n, p = capture.num_images, capture.num_points
+    names = capture.image_names
+    rank = result.rank
+    visible = capture.visible
+    errors = reprojection_errors(capture, result.X)
+    colors = point_colors(p)
+    point_ids = np.arange(p, dtype=np.int32)
+    point_names = list(layout.point_names) if layout is not None else [str(i) for i in range(p)]
+    if len(point_names) != p:
+        raise InputError(f"keypoint layout '{layout.name}' names {len(point_names)} points, "
+                         f"the capture has {p}")
+    edges = np.asarray(list(layout.edges) if layout is not None else [], dtype=np.int64)
+    edges = edges.reshape(-1, 2)
+
+    (folder / "frames").mkdir()
+    if edges.size:
+        (folder / "skeleton").mkdir()
+    for i in tqdm(result.order, desc="export frames", unit="image", disable=n < 200):
+        stem = frame_file_stem(int(rank[i]), str(names[i]), n)
+        finite = np.isfinite(result.X[i]).all(axis=1)
+        if not finite.any():
+            logger.warning("image %s: no finite 3D point, no frame file written", names[i])
+            continue
+        attributes = {"point_id": point_ids[finite],
+                      "observed": visible[i, finite].astype(np.uint8)}
+        if capture.confidence is not None:
+            conf = np.nan_to_num(capture.confidence[i], nan=0.0).astype(np.float32)
+            attributes["confidence"] = conf[finite]
+        write_point_cloud(folder / "frames" / f"{stem}.ply", result.X[i, finite],
+                          colors=colors[finite], attributes=attributes)
+        if edges.size:
+            ok = finite[edges].all(axis=1)
+            if ok.any():
+                write_line_set(folder / "skeleton" / f"{stem}.ply", result.X[i], edges[ok],
+                               colors[edges[ok, 0]])
+
+    if static_xyz is not None and len(static_xyz):
+        rgb = None if static_rgb is None else np.asarray(static_rgb, dtype=np.uint8)
+        write_point_cloud(folder / "static.ply", np.asarray(static_xyz, dtype=np.float64),
+                          colors=rgb)
+
+    save_npz(folder / "trajectories.npz", X=result.X, order=result.order.astype(np.int64),
+             image_names=names.astype(str), events=result.events.astype(np.int64),
+             rank=rank.astype(np.int64), observed=visible, point_names=np.array(point_names),
+             edges=edges, embedding=result.embedding, reprojection_error=errors)
+
+    with open(folder / "trajectories.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["rank", "image", "point_id", "x", "y", "z", "observed"])
+        for i in result.order:
+            for j in range(p):
+                x, y, z = result.X[i, j]
+                writer.writerow([int(rank[i]), names[i], j, repr(float(x)), repr(float(y)),
+                                 repr(float(z)), int(visible[i, j])])
+
+    with open(folder / "sequence.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["rank", "image", "event", "stream", "frame"])
+        for i in result.order:
+            writer.writerow([int(rank[i]), names[i], int(result.events[i]), int(capture.stream[i]),
+                             int(capture.frame[i])])
+
+    per_point = []
+    for j in range(p):
+        per_point.append({"point_id": j, "name": point_names[j], **error_stats(errors[:, j])})
+    full_report = {
+        "images": n,
+        "points": p,
+        "streams": int(np.unique(capture.stream_ids).size),
+        "observations": int(visible.sum()),
+        "events": int(np.unique(result.events).size),
+        "layout": None if layout is None else layout.name,
+        **(report or {}),
+        "solver": {
+            "message": result.message,
+            "success": bool(result.success),
+            "iterations": int(result.nit),
+            "seconds": float(result.seconds),
+            "timings": dict(result.timings),
+            "scale": float(result.scale),
+            "cost_history": np.asarray(result.cost_history, dtype=np.float64),
+            "change_history": np.asarray(result.change_history, dtype=np.float64),
+        },
+        "reprojection_error_px": {
+            "all": error_stats(errors),
+            "per_image": {str(names[i]): error_stats(errors[i]) for i in result.order},
+            "per_point": per_point,
+        },
+        "event_summaries": _event_summaries(capture, result, errors),
+    }
+    full_report = _json_ready(full_report)
+    with open(folder / "report.json", "w") as f:
+        json.dump(full_report, f, indent=2)
+    return full_report
+
+
+def export_outputs(out_dir: Path | str, capture: Capture, result: Result, *,
+                   static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
+                   layout: Layout | None = None, report: dict | None = None,
+                   overwrite: bool = False) -> Path:
+    """Write INTERFACES.md section 4 to ``out_dir`` atomically; returns ``out_dir``.
+
+    An existing ``out_dir`` is refused (InputError) unless ``overwrite``, in which case it is
+    replaced only once the new folder is complete.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not overwrite:
+        raise InputError(f"{out_dir}: output folder exists (use --overwrite to replace it)")
+    with atomic_path(out_dir) as tmp:
+        tmp.mkdir()
+        summary = write_outputs(tmp, capture, result, static_xyz=static_xyz, static_rgb=static_rgb,
+                                layout=layout, report=report)
+    all_err = summary["reprojection_error_px"]["all"]
+    logger.info("wrote %s: %d frames, mean reprojection error %s px", out_dir, capture.num_images,
+                "n/a" if all_err["mean"] is None else f"{all_err['mean']:.3f}")
+    return out_dir

@@ -1,0 +1,225 @@
+"""Reconstruct moving points from keypoint files on the images of a COLMAP workspace."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+from . import __version__
+from .colmap import Workspace, load_workspace
+from .config import load_options
+from .core.capture import Capture
+from .core.options import Options
+from .core.result import Result
+from .core.solver import reconstruct
+from .errors import InputError
+from .io import atomic_path
+from .keypoints import FORMATS, Layout, read_keypoints
+from .observations import build_capture
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def _person(value: str) -> str | int:
+    """``--person``: ``largest`` or a detection index (0 = first person in each file)."""
+    if value == "largest":
+        return value
+    try:
+        index = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'largest' or an index, got {value!r}") from None
+    if index < 0:
+        raise argparse.ArgumentTypeError(f"person index must be >= 0, got {index}")
+    return index
+
+
+def write_plots(folder: Path, capture: Capture, result: Result, *,
+                workspace: Workspace | None = None,
+                edges: np.ndarray | None = None, point_names: list[str] | None = None,
+                num_overlays: int = 4) -> list[Path]:
+    """Sequence, affinity and trajectory plots, plus reprojection overlays on ``num_overlays``
+    images spread over the estimated order when the workspace's image files exist."""
+    from . import viz  # matplotlib / cv2 only when plotting
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = [
+        viz.plot_sequence(result, capture, folder / "sequence.png"),
+        viz.plot_affinity(result, folder / "affinity.png"),
+        viz.plot_trajectories(result.X, result.order, folder / "trajectories.png",
+                              point_names=point_names, observed=capture.visible),
+    ]
+    if workspace is None or workspace.image_dir is None or num_overlays <= 0:
+        return written
+    from .export import frame_file_stem
+
+    rays = capture.rays()
+    picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
+    for i in dict.fromkeys(picks.tolist()):
+        name = str(capture.image_names[i])
+        image_path = Path(workspace.image_dir) / name
+        if not image_path.is_file():
+            logger.debug("no image file %s: no overlay", image_path)
+            continue
+        # any point on the observed ray projects to the observed (distorted) pixel
+        observed = np.full((capture.num_points, 2), np.nan)
+        vis = capture.visible[i]
+        if vis.any():
+            observed[vis] = workspace.project(name, capture.C[i] + rays[i, vis])
+        reprojected = workspace.project(name, result.X[i])
+        rank = int(result.rank[i])
+        written.append(viz.plot_reprojection(
+            image_path, observed, reprojected, edges if edges is not None else [],
+            folder / "overlays" / f"{frame_file_stem(rank, name, capture.num_images)}.png",
+            title=f"{name} (rank {rank})",
+        ))
+    return written
+
+
+def export_reconstruction(out: Path, capture: Capture, result: Result, *,
+                          workspace: Workspace | None = None, layout: Layout | None = None,
+                          report: dict | None = None, overwrite: bool = False,
+                          plots: bool = True) -> dict:
+    """Section-4 outputs (and ``plots/`` unless ``plots=False``) of a solved capture, written
+    atomically to ``out``; static points and overlays come from ``workspace`` when given.
+    Returns the report written to ``report.json``."""
+    from .export import write_outputs  # open3d: 1 s to import, ``dloe-sfm`` loads every stage
+
+    out = Path(out)
+    if out.exists() and not (overwrite and out.is_dir()):
+        raise InputError(f"{out}: output path exists" + (" (use --overwrite to replace it)"
+                                                         if out.is_dir() else ""))
+    tic = time.perf_counter()
+    with atomic_path(out) as tmp:
+        tmp.mkdir()
+        summary = write_outputs(
+            tmp, capture, result, layout=layout, report=report,
+            static_xyz=None if workspace is None else workspace.static_xyz,
+            static_rgb=None if workspace is None else workspace.static_rgb,
+        )
+        if plots:
+            write_plots(tmp / "plots", capture, result, workspace=workspace,
+                        edges=None if layout is None else
+                        np.asarray(layout.edges, dtype=np.int64).reshape(-1, 2),
+                        point_names=None if layout is None else list(layout.point_names))
+    logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz, report.json%s)",
+                time.perf_counter() - tic, out, ", plots/" if plots else "")
+    error = summary["reprojection_error_px"]["all"]
+    if error["mean"] is not None:
+        logger.info("mean reprojection error %.3f px (median %.3f) over %d observations",
+                    error["mean"], error["median"], error["count"])
+    return summary
+
+
+def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
+         stream_pattern: str | None = None, min_score: float = 0.0,
+         person: str | int = "largest", config: Path | None = None,
+         overrides: list[str] | None = None, options: Options | None = None,
+         overwrite: bool = False, plots: bool = True) -> Path:
+    """Workspace + keypoints -> capture -> DLOE -> ``out`` (INTERFACES.md section 4).
+
+    ``keypoints`` may be None for ``aruco`` (markers detected in the workspace's images).
+    ``out`` is checked first (an existing folder is refused unless ``overwrite``) and written
+    atomically: on any error nothing is left at ``out``. Returns ``out``.
+    """
+    out = Path(out)
+    if out.exists() and not (overwrite and out.is_dir()):
+        raise InputError(f"{out}: output path exists" + (" (use --overwrite to replace it)"
+                                                         if out.is_dir() else ""))
+    options = load_options(config, overrides, base=options)
+    timings: dict[str, float] = {}
+
+    tic = time.perf_counter()
+    ws = load_workspace(workspace)
+    timings["load_workspace"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    kp = read_keypoints(fmt, keypoints, workspace=ws)
+    timings["read_keypoints"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    capture = build_capture(ws, kp, stream_pattern=stream_pattern, min_score=min_score,
+                            person=person)
+    timings["build_capture"] = time.perf_counter() - tic
+
+    tic = time.perf_counter()
+    result = reconstruct(capture, options)
+    timings["solve"] = time.perf_counter() - tic
+    logger.info("DLOE: %s (%d iterations, %.2f s, %d event(s))", result.message, result.nit,
+                result.seconds, np.unique(result.events).size)
+
+    report = {
+        "dloe_sfm_version": __version__,
+        "inputs": {
+            "workspace": str(Path(workspace).resolve()),
+            "model": str(ws.model_dir),
+            "keypoints": None if keypoints is None else str(Path(keypoints).resolve()),
+            "format": fmt,
+            "stream_pattern": stream_pattern,
+            "min_score": min_score,
+            "person": person,
+            "unregistered_images": list(ws.unregistered),
+        },
+        "parameters": options.to_dict(),
+        "timings": timings,
+    }
+    export_reconstruction(out, capture, result, workspace=ws, layout=kp.layout, report=report,
+                          overwrite=overwrite, plots=plots)
+    return out
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("workspace", type=Path,
+                        help="COLMAP workspace (images/ and sparse/0 or sparse/)")
+    parser.add_argument("--keypoints", type=Path,
+                        help="keypoint file or folder (per the format); aruco: default images/")
+    parser.add_argument("--format", dest="fmt", required=True, choices=list(FORMATS),
+                        help="keypoint format")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (must not exist)")
+    parser.add_argument("--stream-pattern", metavar="REGEX",
+                        help="regex with named groups (?P<stream>...) and (?P<frame>...) "
+                             "searched in image names; default: one stream per COLMAP camera")
+    parser.add_argument("--min-score", type=float, default=0.0,
+                        help="ignore detections with a lower score (default 0)")
+    parser.add_argument("--person", type=_person, default="largest",
+                        help="person to follow: 'largest' (default) or a detection index")
+    parser.add_argument("--config", type=Path, help="TOML file of solver options")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one solver option (repeatable)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing output folder")
+    parser.add_argument("--no-plots", dest="plots", action="store_false", help="skip plots/")
+    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    out = main(args.workspace, args.keypoints, args.fmt, args.out,
+               stream_pattern=args.stream_pattern, min_score=args.min_score, person=args.person,
+               config=args.config, overrides=args.overrides,
+               options=Options(progress=args.progress),
+               overwrite=args.overwrite, plots=args.plots)
+    print(f"reconstruction written to {out}")
+    return 0
+
+
+class _CallableStage(types.ModuleType):
+    """Importing this stage module rebinds the package attribute ``dloe_sfm.reconstruct`` from
+    the solver function to the module (Python sets submodules on their parent); calling the
+    module runs the solver, so ``dloe_sfm.reconstruct(capture, options)`` works either way."""
+
+    def __call__(self, capture: Capture, options: Options | None = None) -> Result:
+        return reconstruct(capture, options)
+
+
+sys.modules[__name__].__class__ = _CallableStage
+
+
+if __name__ == "__main__":
+    from .cli import run_stage
+
+    sys.exit(run_stage(__name__))

@@ -1,0 +1,5 @@
+"""Capture simulation for tests and benchmarks (the paper's motion-capture protocol)."""
+
+from .mocap import MocapSequence, SimulationSettings, load_mocap, ring_cameras, simulate
+
+__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "ring_cameras", "simulate"]

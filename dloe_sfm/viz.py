@@ -1,0 +1,243 @@
+"""Plots (matplotlib, Agg backend) and image overlays (OpenCV) of a reconstruction, as PNG files."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+
+from .core.capture import Capture
+from .core.result import Result
+from .io import atomic_path
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def _figure(**kwargs) -> Figure:
+    """A figure on the Agg canvas, outside pyplot (no global backend state, nothing to close)."""
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig: Figure, path: Path | str) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
+    return path
+
+
+def plot_sequence(result: Result, capture: Capture, path: Path | str) -> Path:
+    """Estimated rank of every image against its frame index, one line per stream, and the
+    1D embedding (estimated time) in estimated order; a stream's line rises steadily when the
+    recovered order agrees with the stream's known frame order."""
+    rank = result.rank
+    fig = _figure(figsize=(13, 5.2))
+    ax_seq, ax_emb = fig.subplots(1, 2)
+    streams = np.unique(capture.stream)
+    cmap = colormaps["tab10" if streams.size <= 10 else "turbo"]
+    for k, s in enumerate(streams):
+        idx = np.flatnonzero(capture.stream == s)
+        idx = idx[np.argsort(capture.frame[idx])]
+        colour = cmap(k % 10) if streams.size <= 10 else cmap(k / max(streams.size - 1, 1))
+        if s < 0:
+            ax_seq.scatter(np.zeros(idx.size), rank[idx], marker="x", color="k",
+                           label=f"lone photos ({idx.size})")
+            continue
+        ax_seq.plot(capture.frame[idx], rank[idx], "o-", ms=3, lw=1.2, color=colour,
+                    label=f"stream {s} ({idx.size})")
+        sel = np.isin(result.order, idx)
+        ax_emb.scatter(np.flatnonzero(sel), result.embedding[result.order[sel]], s=10,
+                       color=colour, label=f"stream {s}")
+    ax_seq.set_xlabel("frame index within its stream")
+    ax_seq.set_ylabel("estimated rank (0 = earliest)")
+    ax_seq.set_title("Recovered order vs. known in-stream order")
+    ax_seq.grid(alpha=0.3)
+    ax_seq.legend(fontsize=8, loc="best", ncol=1 + streams.size // 12)
+    lone = capture.stream[result.order] < 0
+    if lone.any():
+        ax_emb.scatter(np.flatnonzero(lone), result.embedding[result.order[lone]], s=14,
+                       marker="x", color="k", label="lone photos")
+    boundaries = np.flatnonzero(np.diff(result.events[result.order]) != 0) + 0.5
+    for b in boundaries:
+        ax_emb.axvline(b, color="grey", ls="--", lw=0.8)
+    ax_emb.set_xlabel("estimated rank")
+    ax_emb.set_ylabel("embedding (estimated time)")
+    n_events = np.unique(result.events).size
+    ax_emb.set_title(f"Embedding in estimated order ({n_events} event{'s' * (n_events > 1)})")
+    ax_emb.grid(alpha=0.3)
+    if streams.size <= 12:
+        ax_emb.legend(fontsize=8, loc="best")
+    fig.suptitle(f"Sequencing of {capture.num_images} images from {streams.size} stream(s)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_affinity(result: Result, path: Path | str) -> Path:
+    """The sparse affinity A = D W with rows and columns in estimated order, log colour scale.
+
+    Drawn from its non-zeros only (never densified); dashed lines separate events.
+    """
+    n = result.order.size
+    A = sp.coo_matrix(sp.csr_matrix(result.A)[result.order][:, result.order])
+    keep = A.data > 0
+    rows, cols, vals = A.row[keep], A.col[keep], A.data[keep]
+    fig = _figure(figsize=(7.2, 6.2))
+    ax = fig.subplots()
+    marker_size = max(1.0, min(30.0, (300.0 / max(n, 1)) ** 2))
+    if vals.size:
+        sc = ax.scatter(cols, rows, c=vals, s=marker_size, marker="s", cmap="viridis",
+                        norm=LogNorm(vmin=vals.min(), vmax=max(vals.max(), vals.min() * 1.0001)),
+                        linewidths=0)
+        fig.colorbar(sc, ax=ax, label="affinity A_ij (log scale)")
+    for b in np.flatnonzero(np.diff(result.events[result.order]) != 0) + 0.5:
+        ax.axhline(b, color="grey", ls="--", lw=0.8)
+        ax.axvline(b, color="grey", ls="--", lw=0.8)
+    ax.set_xlim(-0.5, n - 0.5)
+    ax.set_ylim(n - 0.5, -0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("image j (estimated rank)")
+    ax.set_ylabel("image i (estimated rank)")
+    ax.set_title(f"Affinity A = D W in estimated order ({vals.size} non-zeros, N = {n})")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_reprojection(image_path: Path | str, observed: np.ndarray, reprojected: np.ndarray,
+                      edges: np.ndarray | list[tuple[int, int]], path: Path | str, *,
+                      title: str | None = None, max_side: int = 1600) -> Path:
+    """Overlay on the image: observed keypoints (green dots), reprojected 3D points (red
+    crosses), their error lines (yellow) and the skeleton through the reprojected points.
+
+    observed (P, 2), reprojected (P, 2): COLMAP pixel coordinates (centre of the top-left pixel
+    = (0.5, 0.5)); NaN rows are skipped. edges (E, 2) point indices. The image is cropped to the
+    points (with a margin) and scaled so the longer side is about ``max_side`` pixels: a person
+    in a large photo stays readable.
+    """
+    image = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise OSError(f"{image_path}: cannot read the image")
+    # COLMAP's (0.5, 0.5) is the centre of OpenCV's pixel (0, 0)
+    obs = np.asarray(observed, dtype=np.float64) - 0.5
+    rep = np.asarray(reprojected, dtype=np.float64) - 0.5
+    height, width = image.shape[:2]
+    pts = np.concatenate([obs, rep])
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    pts = pts[(pts >= 0).all(axis=1) & (pts[:, 0] < width) & (pts[:, 1] < height)]
+    if len(pts):
+        margin = max(0.25 * float(np.ptp(pts, axis=0).max()), 20.0)
+        x0, y0 = np.maximum(np.floor(pts.min(axis=0) - margin), 0).astype(int)
+        x1, y1 = np.minimum(np.ceil(pts.max(axis=0) + margin), [width, height]).astype(int)
+        image = image[y0:y1, x0:x1]
+        obs, rep = obs - [x0, y0], rep - [x0, y0]
+    scale = min(8.0, max_side / max(image.shape[:2]))
+    image = cv2.resize(image, None, fx=scale, fy=scale,
+                       interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    obs, rep = obs * scale, rep * scale
+    size = max(image.shape[:2])
+    thick = max(1, round(size / 600))
+    radius = max(3, round(size / 200))
+
+    def pt(v: np.ndarray) -> tuple[int, int]:
+        return int(round(v[0])), int(round(v[1]))
+
+    ok_rep = np.isfinite(rep).all(axis=1)
+    ok_obs = np.isfinite(obs).all(axis=1)
+    for i, j in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
+        if ok_rep[i] and ok_rep[j]:
+            cv2.line(image, pt(rep[i]), pt(rep[j]), (255, 160, 60), thick, cv2.LINE_AA)
+    for p in range(len(obs)):
+        if ok_obs[p] and ok_rep[p]:
+            cv2.line(image, pt(obs[p]), pt(rep[p]), (0, 230, 255), thick, cv2.LINE_AA)
+    for p in np.flatnonzero(ok_obs):
+        cv2.circle(image, pt(obs[p]), radius, (40, 200, 40), -1, cv2.LINE_AA)
+    for p in np.flatnonzero(ok_rep):
+        cv2.drawMarker(image, pt(rep[p]), (30, 30, 230), cv2.MARKER_CROSS, 3 * radius, thick,
+                       cv2.LINE_AA)
+    err = np.linalg.norm(np.asarray(observed) - np.asarray(reprojected), axis=1)
+    mean = float(np.nanmean(err)) if np.isfinite(err).any() else float("nan")
+    lines = [title or Path(image_path).name,
+             f"observed (green) vs reprojected (red): mean {mean:.2f} px, "
+             f"{int(np.isfinite(err).sum())} points"]
+    # title lines on a white band above the image, font shrunk to fit its width
+    font, font_scale = cv2.FONT_HERSHEY_SIMPLEX, max(0.5, image.shape[1] / 1600)
+    widest = max(cv2.getTextSize(t, font, font_scale, thick)[0][0] for t in lines)
+    font_scale *= min(1.0, (image.shape[1] - 20) / widest)
+    line_height = int(cv2.getTextSize("Ag", font, font_scale, thick)[0][1] * 1.9) + 4
+    band = np.full((line_height * len(lines) + 8, image.shape[1], 3), 255, dtype=np.uint8)
+    for k, text in enumerate(lines):
+        cv2.putText(band, text, (10, (k + 1) * line_height), font, font_scale, (0, 0, 0), thick,
+                    cv2.LINE_AA)
+    image = np.concatenate([band, image], axis=0)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        ok, buf = cv2.imencode(".png", image)
+        if not ok:
+            raise OSError(f"{path}: OpenCV could not encode the overlay")
+        tmp.write_bytes(buf.tobytes())
+    return path
+
+
+def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
+                      points: list[int] | None = None, point_names: list[str] | None = None,
+                      observed: np.ndarray | None = None, max_points: int = 6) -> Path:
+    """3D trajectories of a few points along the estimated order.
+
+    X (N, P, 3) world points, order (N,) image indices by estimated time, observed (N, P) bool.
+    By default the ``max_points`` points with the largest robust extent (5th-95th percentile)
+    among the most observed ones (seen in >= 80 % as many images as the best) are drawn; circles
+    mark the first image, squares the last. The view spans the 1st-99th percentiles of the drawn
+    positions: outliers beyond it are left out and counted in the title.
+    """
+    X = np.asarray(X, dtype=np.float64)[np.asarray(order)]
+    if points is None:
+        spread = np.nanpercentile(X, 95, axis=0) - np.nanpercentile(X, 5, axis=0)  # (P, 3)
+        score = np.nan_to_num(np.linalg.norm(spread, axis=1))
+        if observed is not None:
+            seen = np.asarray(observed).sum(axis=0)
+            score[seen < 0.8 * seen.max()] = -1.0
+        points = sorted(np.argsort(-score)[:max_points].tolist())
+    tracks = X[:, points].copy()  # (N, k, 3)
+    finite = tracks[np.isfinite(tracks).all(axis=2)]
+    outliers = 0
+    if len(finite):
+        low, high = np.percentile(finite, 1, axis=0), np.percentile(finite, 99, axis=0)
+        margin = 0.1 * (high - low).max() + 1e-9
+        low, high = low - margin, high + margin
+        outside = ((tracks < low) | (tracks > high)).any(axis=2)
+        outliers = int(outside.sum())
+        tracks[outside] = np.nan
+    fig = _figure(figsize=(8, 7))
+    ax = fig.add_subplot(projection="3d")
+    cmap = colormaps["tab10"]
+    for k, p in enumerate(points):
+        track = tracks[:, k]
+        valid = np.flatnonzero(np.isfinite(track).all(axis=1))
+        if not valid.size:
+            continue
+        label = point_names[p] if point_names is not None else f"point {p}"
+        colour = cmap(k % 10)
+        ax.plot(*track.T, "-", color=colour, lw=1.3, label=label)
+        ax.scatter(*track[valid[0]], color=colour, marker="o", s=40)
+        ax.scatter(*track[valid[-1]], color=colour, marker="s", s=40)
+    if len(finite):
+        centre, half = (high + low) / 2, float((high - low).max()) / 2
+        ax.set_xlim(centre[0] - half, centre[0] + half)
+        ax.set_ylim(centre[1] - half, centre[1] + half)
+        ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set_xlabel("x (model units)")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    note = f", {outliers} outlying position(s) not drawn" if outliers else ""
+    ax.set_title(f"Trajectories along the estimated order ({X.shape[0]} images{note})\n"
+                 "o = first image, \u25a1 = last image")
+    ax.legend(fontsize=8, loc="upper left")
+    fig.tight_layout()
+    return _save(fig, path)

@@ -1,0 +1,54 @@
+"""Smoke tests of ``dloe-sfm benchmark`` on tiny grids of the shared mocap data."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from dloe_sfm import benchmark
+
+
+@pytest.mark.shared
+def test_noise_quick(shared_dir, tmp_path) -> None:
+    out = tmp_path / "noise"
+    doc = benchmark.main("noise", out=out, data=shared_dir / "data" / "mocap", quick=True,
+                         motions=["walking_1"], duration=0.4)
+    assert (out / "noise.png").stat().st_size > 1000
+    assert (out / "table.md").read_text().startswith("| method \\ 2D noise sigma (px) | 0 | 3 |")
+    saved = json.loads((out / "results.json").read_text())
+    assert saved["suite"] == "noise" and saved["values"] == [0.0, 3.0]
+    assert {"platform", "cpu_count", "cpu_model", "numpy", "scipy", "git_commit"} <= set(
+        saved["machine"])
+    assert len(saved["runs"]) == 2 * len(benchmark.METHODS)
+    assert not any("failed" in r for r in saved["runs"])
+    summary = doc["summary"]
+    assert set(summary) == set(benchmark.METHODS)
+    for setting in ("0", "3"):
+        assert summary["DLOE oracle"][setting]["mean"] < \
+            summary["pseudo-triangulation"][setting]["mean"]
+
+
+@pytest.mark.shared
+def test_runtime_quick(shared_dir, tmp_path) -> None:
+    out = tmp_path / "runtime"
+    doc = benchmark.main("runtime", out=out, data=shared_dir / "data" / "mocap", quick=True,
+                         sizes=[40, 80])
+    runs = sorted(doc["runs"], key=lambda r: r["num_images"])
+    assert [r["num_images"] for r in runs] == [40, 80]
+    assert all(r["peak_rss_mb"] >= r["rss_before_mb"] > 0 for r in runs)
+    assert np.isfinite(doc["summary"]["fits"]["seconds"]["exponent"])
+    assert "Fitted growth exponents" in (out / "table.md").read_text()
+    assert (out / "runtime.png").is_file()
+
+
+def test_unknown_suite(tmp_path) -> None:
+    with pytest.raises(benchmark.InputError, match="unknown suite"):
+        benchmark.main("speed", out=tmp_path)
+
+
+def test_fit_exponent() -> None:
+    n = np.array([100.0, 200.0, 400.0, 800.0])
+    slope, _ = benchmark.fit_exponent(n, 3e-4 * n ** 1.5)
+    assert slope == pytest.approx(1.5)

@@ -1,0 +1,303 @@
+"""The DLOE core: each step against a generic solver, and the properties the method relies on."""
+
+import numpy as np
+import osqp
+import pytest
+import scipy.sparse as sp
+from scipy.optimize import minimize
+
+from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.init import pseudo_triangulate
+from dloe_sfm.core.options import Options
+from dloe_sfm.core.sequencing import (
+    arc_distance,
+    dtw_positions,
+    euclidean_distance,
+    kendall_tau,
+    line_embedding,
+    monotone_assignment,
+    order_from_embedding,
+    orient,
+)
+from dloe_sfm.core.simplex_qp import solve_simplex_qp
+from dloe_sfm.core.solver import build_problem, oracle_reconstruct, reconstruct
+from dloe_sfm.core.steps import (
+    chain_matrix,
+    d_step,
+    row_terms,
+    select_candidates,
+    smoothness_matrix,
+    total_cost,
+    w_step,
+    x_step,
+)
+from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
+
+
+def osqp_simplex(H, g):
+    k = g.size
+    A = sp.csc_matrix(np.vstack([np.ones((1, k)), np.eye(k)]))
+    solver = osqp.OSQP()
+    solver.setup(sp.csc_matrix(H), g, A, np.r_[1.0, np.zeros(k)], np.r_[1.0, np.full(k, np.inf)],
+                 verbose=False, eps_abs=1e-12, eps_rel=1e-12, max_iter=200000, polishing=True)
+    return solver.solve(raise_error=True).x
+
+
+def test_simplex_qp_matches_osqp(rng):
+    B, k = 300, 8
+    M = rng.standard_normal((B, 12, k))
+    H = np.einsum("bji,bjk->bik", M, M) + 1e-3 * np.eye(k)
+    g = 3 * rng.standard_normal((B, k))
+    mask = rng.random((B, k)) < 0.75
+    mask[:, 0] = True
+    w = solve_simplex_qp(H, g, mask)
+    assert np.allclose(w.sum(axis=1), 1.0, atol=1e-12)
+    assert (w >= 0).all() and (w[~mask] == 0).all()
+    worst = 0.0
+    for b in range(B):
+        idx = np.flatnonzero(mask[b])
+        ref = osqp_simplex(H[b][np.ix_(idx, idx)], g[b][idx])
+        worst = max(worst, np.abs(ref - w[b, idx]).max())
+    assert worst < 1e-8
+
+
+def small_capture(rng, n_per_stream=12, streams=3, p=6, motion=0.02):
+    """Points moving linearly in time, seen by a ring of cameras at interleaved instants."""
+    K1, R1, C1 = ring_cameras(np.zeros(3), num=streams, radius=3.0)
+    base = rng.standard_normal((p, 3)) * 0.3
+    vel = rng.standard_normal((p, 3)) * motion
+    stream = np.repeat(np.arange(streams), n_per_stream)
+    frame = np.tile(np.arange(n_per_stream), streams)
+    t = frame + stream / streams
+    X = base[None] + t[:, None, None] * vel[None]
+    x = project(X, K1[stream], R1[stream], C1[stream])
+    cap = Capture(x=x, K=K1[stream], R=R1[stream], C=C1[stream], stream=stream, frame=frame,
+                  extras={"X_true": X, "t_true": t})
+    return cap.validate()
+
+
+def test_w_step_rows_match_osqp(rng):
+    cap = small_capture(rng)
+    n = cap.num_images
+    opts = Options()
+    prob = build_problem(cap, opts, np.zeros(3), 1.0)
+    X = cap.extras["X_true"] + 0.01 * rng.standard_normal(cap.extras["X_true"].shape)
+    D = rng.uniform(0.5, 1.5, n)
+    cand = select_candidates(X.reshape(n, -1), prob, 5, min_angle=15.0)
+    lam1, lam3, ridge = 1e-3, 1e-4, 1e-9
+    W_var = w_step(X, D, cand, prob, lambda1=lam1, lambda3=lam3, ridge=ridge)
+    r0 = np.nan_to_num(prob.rays)
+    Xf = X.reshape(n, -1)
+    for i in range(n):
+        c = cand[i][cand[i] >= 0]
+        a = prob.prior[i]
+        target = Xf[i] - a * np.asarray(prob.chain[i] @ Xf).ravel()
+        E = target[:, None] - (1 - a) * Xf[c].T
+        coh = ((r0[i] * r0[c]).sum(axis=2) ** 2).sum(axis=1)
+        H = 2 * (E.T @ E + np.diag(lam3 * (1 - a) ** 2 * coh + ridge + 1e-12 * np.trace(E.T @ E) / c.size))
+        g = lam1 / D[i] * (1 - a) * ((Xf[i] - Xf[c]) ** 2).sum(axis=1)
+        ref = osqp_simplex(H, g)
+        got = W_var[i].toarray().ravel()[c]
+        assert np.abs(ref - got).max() < 1e-7, i
+    # other streams only
+    coo = W_var.tocoo()
+    assert (prob.streams[coo.row] != prob.streams[coo.col]).all()
+
+
+def test_d_step_matches_scipy(rng):
+    cap = small_capture(rng, n_per_stream=5)
+    n = cap.num_images
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    X = cap.extras["X_true"] + 0.05 * rng.standard_normal(cap.extras["X_true"].shape)
+    cand = select_candidates(X.reshape(n, -1), prob, 4, min_angle=15.0)
+    W = w_step(X, np.ones(n), cand, prob, lambda1=0.0, lambda3=0.0, ridge=1e-6)
+    lam1, lam3, floor = 0.3, 1e-3, 0.5
+    d = d_step(X, W, prob, lambda1=lam1, lambda3=lam3, floor=floor)
+    s, t, rho = row_terms(X, W, prob, lambda3=lam3)
+    f = lambda v: float((v ** 2 * (s + lam3 * rho) + lam1 * v * t).sum())
+    ref = minimize(f, np.ones(n), method="SLSQP", bounds=[(floor, None)] * n,
+                   constraints=[{"type": "eq", "fun": lambda v: v.sum() - n}],
+                   options={"ftol": 1e-15, "maxiter": 1000})
+    assert abs(d.sum() - n) < 1e-9 and d.min() >= floor - 1e-12
+    assert f(d) <= ref.fun + 1e-9 * abs(ref.fun)
+    assert np.abs(d - ref.x).max() < 1e-4
+
+
+@pytest.mark.parametrize("lambda2", [np.inf, 0.5])
+def test_x_step_matches_dense_least_squares(rng, lambda2):
+    cap = small_capture(rng, n_per_stream=5, p=3)
+    n, p = cap.num_images, cap.num_points
+    cap.x[2, 1] = np.nan  # one unobserved point
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    X0 = cap.extras["X_true"]
+    cand = select_candidates(X0.reshape(n, -1), prob, 4, min_angle=15.0)
+    W = w_step(X0, np.ones(n), cand, prob, lambda1=0.0, lambda3=0.0, ridge=1e-6)
+    D, lam1 = rng.uniform(0.5, 1.5, n), 0.05
+    X = x_step(W, D, prob, lambda1=lam1, lambda2=lambda2, X_prev=X0)
+    cost = lambda Y: total_cost(Y, W, D, prob, lambda1=lam1, lambda2=lambda2, lambda3=0.0)["total"]
+    # dense reference: minimise the same quadratic over a generic parametrisation
+    Q = smoothness_matrix(W, D, lam1).toarray()
+    vis = prob.visible
+    r0 = np.nan_to_num(prob.rays)
+    for j in range(p):
+        if np.isinf(lambda2):
+            cols, c = [], np.zeros(3 * n)
+            for i in range(n):
+                if vis[i, j]:
+                    col = np.zeros(3 * n)
+                    col[3 * i: 3 * i + 3] = r0[i, j]
+                    cols.append(col)
+                    c[3 * i: 3 * i + 3] = prob.C[i]
+                else:
+                    for k in range(3):
+                        col = np.zeros(3 * n)
+                        col[3 * i + k] = 1
+                        cols.append(col)
+            B = np.stack(cols, axis=1)
+        else:
+            B, c = np.eye(3 * n), np.zeros(3 * n)
+        Q3 = np.kron(Q, np.eye(3))
+        H, g = B.T @ Q3 @ B, B.T @ Q3 @ c
+        if not np.isinf(lambda2):
+            for i in range(n):
+                P = lambda2 * prob.weights[i, j] * (np.eye(3) - np.outer(r0[i, j], r0[i, j]))
+                H[3 * i:3 * i + 3, 3 * i:3 * i + 3] += P
+                g[3 * i:3 * i + 3] -= P @ prob.C[i]
+        z = np.linalg.lstsq(H, -g, rcond=None)[0]
+        ref = (c + B @ z).reshape(n, 3)
+        assert np.abs(ref - X[:, j]).max() < 1e-6 * (1 + np.abs(ref).max())
+    assert cost(X) <= cost(X0) + 1e-12
+    if np.isinf(lambda2):
+        # observed points stay on their rays
+        rel = X - prob.C[:, None]
+        cross = np.linalg.norm(np.cross(rel, r0), axis=2)[vis]
+        assert cross.max() < 1e-9
+
+
+def test_oracle_exact_on_linear_motion(rng):
+    cap = small_capture(rng)
+    X = oracle_reconstruct(cap, cap.extras["t_true"])
+    X_true = cap.extras["X_true"]
+    assert np.linalg.norm(X - X_true) / np.linalg.norm(X_true) < 1e-6
+
+
+def test_pseudo_triangulation_exact_on_static_points(rng):
+    K, R, C = ring_cameras(np.zeros(3), num=4, radius=3.0)
+    pts = rng.standard_normal((10, 3)) * 0.4
+    X = np.repeat(pts[None], 4, axis=0)
+    x = project(X, K, R, C)
+    cap = Capture(x=x, K=K, R=R, C=C, stream=np.arange(4))
+    depths, partner = pseudo_triangulate(cap.rays(), C, cap.stream_ids)
+    Xh = C[:, None] + depths[..., None] * cap.rays()
+    assert np.abs(Xh - X).max() < 1e-9
+    # opposite cameras (anti-parallel rays) are never partners
+    assert (np.abs(partner - np.arange(4)) != 2).all()
+
+
+def test_pseudo_triangulation_handles_missing_and_parallel(rng):
+    K, R, C = ring_cameras(np.zeros(3), num=4, radius=3.0)
+    pts = rng.standard_normal((5, 3)) * 0.4
+    x = project(np.repeat(pts[None], 4, axis=0), K, R, C)
+    x[1, 0] = np.nan  # partner of image 0 misses point 0: a next-best partner serves it
+    cap = Capture(x=x, K=K, R=R, C=C, stream=np.arange(4))
+    depths, _ = pseudo_triangulate(cap.rays(), C, cap.stream_ids)
+    Xh = C[:, None] + depths[..., None] * cap.rays()
+    ok = np.isfinite(depths)
+    assert ok.sum() == 19 and np.abs(Xh[ok] - np.repeat(pts[None], 4, axis=0)[ok]).max() < 1e-9
+
+
+def test_monotone_assignment_respects_order(rng):
+    cost = rng.random((30, 20))
+    path = monotone_assignment(cost)
+    assert (np.diff(path) >= 0).all()
+    # brute-force check of optimality on a tiny instance
+    small = rng.random((4, 3))
+    best = min(
+        (sum(small[i, c[i]] for i in range(4)), c)
+        for c in np.array(np.meshgrid(*[range(3)] * 4)).reshape(4, -1).T
+        if (np.diff(c) >= 0).all()
+    )
+    p = monotone_assignment(small)
+    assert abs(small[np.arange(4), p].sum() - best[0]) < 1e-12
+
+
+def test_dtw_positions_on_a_shared_curve():
+    s = np.linspace(0, 1, 40)
+    curve = lambda u: np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
+    B = curve(s)
+    A = curve(s[:-1] + 0.5 / 39)  # interleaved samples of the same curve
+    pos = dtw_positions(A, B)
+    assert (np.diff(pos) > 0).all()
+    arc_b = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(B, axis=0), axis=1))])
+    mid = 0.5 * (arc_b[:-1] + arc_b[1:])
+    assert np.abs(pos - mid).max() < 1e-3
+
+
+@pytest.mark.parametrize("embedding", ["mds", "spectral", "shp"])
+def test_embeddings_order_a_known_chain(rng, embedding):
+    t = np.sort(rng.random(60)) * 1.5  # a gently bending helix: every embedding must order it
+    X = np.stack([np.cos(t), np.sin(t), 0.3 * t], axis=1)[:, None, :]  # a helix, one point
+    streams = np.arange(60) % 3
+    frames = np.arange(60) // 3
+    for Z in (euclidean_distance(X), arc_distance(X, streams, frames)):
+        f = orient(line_embedding(Z, embedding), streams, frames)
+        assert kendall_tau(order_from_embedding(f), t) > 0.99
+        assert (np.diff(f[order_from_embedding(f)]) >= 0).all()
+    assert kendall_tau(np.arange(5), np.arange(5)) == pytest.approx(1.0)
+    assert kendall_tau(np.arange(5)[::-1], np.arange(5)) == pytest.approx(1.0)
+    assert kendall_tau(np.array([0, 2, 1, 3]), np.arange(4)) == pytest.approx(4 / 6)
+
+
+def test_arc_distance_separates_repetitions():
+    # a point going round a circle twice: Euclidean distance confuses the laps, arc does not
+    t = np.linspace(0, 4 * np.pi, 120)
+    X = np.stack([np.cos(t), np.sin(t), np.zeros_like(t)], axis=1)[:, None, :]
+    streams = np.arange(120) % 4
+    frames = np.arange(120) // 4
+    Z = arc_distance(X, streams, frames)
+    f = orient(line_embedding(Z, "shp"), streams, frames)
+    assert kendall_tau(order_from_embedding(f), t) > 0.99
+    Ze = euclidean_distance(X)
+    assert Ze[0, 60] < 0.2 < Z[0, 60]
+
+
+def test_chain_matrix_rows():
+    W = chain_matrix(np.array([0, 0, 0, 1, 1, 2]), np.array([2, 0, 1, 0, 1, 0])).toarray()
+    assert np.allclose(W[2], [0.5, 0.5, 0, 0, 0, 0])  # frame 1 between frames 0 and 2
+    assert np.allclose(W[[0, 1, 3, 4, 5]], 0)  # stream ends and a stream of one: no chain row
+
+
+def walking_capture(assets_dir, **kw):
+    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    return simulate(seq, SimulationSettings(duration=1.5, **kw)).validate()
+
+
+def test_cost_decreases_monotonically(assets_dir):
+    cap = walking_capture(assets_dir)
+    r = reconstruct(cap, Options(omega=1.0, spectral_prior=False, max_iterations=15,
+                                 tolerance=0.0, fixed_degree=False))
+    c = r.cost_history
+    assert c.size == 15
+    assert (np.diff(c) <= 1e-12 * c[0]).all()
+
+
+def test_end_to_end_walking_accuracy(assets_dir):
+    cap = walking_capture(assets_dir)
+    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+    r = reconstruct(cap, Options())
+    err = 1000 * np.linalg.norm(r.X - X_true, axis=2).mean()
+    oracle = 1000 * np.linalg.norm(oracle_reconstruct(cap, t) - X_true, axis=2).mean()
+    assert err <= 1.5 * oracle + 0.5, (err, oracle)
+    assert kendall_tau(r.order, t) >= 0.99
+    assert r.events.max() == 0
+    assert r.A.nnz <= 12 * cap.num_images  # sparse graph
+
+
+def test_missing_points_are_reconstructed(assets_dir):
+    cap = walking_capture(assets_dir, missing=0.3, seed=1)
+    X_true = cap.extras["X_true"]
+    r = reconstruct(cap, Options())
+    e = 1000 * np.linalg.norm(r.X - X_true, axis=2)
+    miss = ~cap.visible
+    assert miss.sum() > 0.25 * miss.size
+    assert e[miss].mean() < 5.0 and e[~miss].mean() < 3.0

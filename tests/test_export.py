@@ -1,0 +1,202 @@
+"""Workspace outputs (INTERFACES.md section 4) from a hand-built capture and result."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+import scipy.sparse as sp
+
+from dloe_sfm import Capture, InputError, Result
+from dloe_sfm import export as export_module
+from dloe_sfm.core.capture import project
+from dloe_sfm.export import export_outputs, frame_file_stem, reprojection_errors
+from dloe_sfm.keypoints import Layout
+
+N_PER_STREAM, STREAMS, P = 6, 3, 5
+F, W_IMG, H_IMG = 800.0, 640.0, 480.0
+
+
+LAYOUT = Layout("toy", ["head", "neck", "hip", "knee", "foot"], [(0, 1), (1, 2), (2, 3), (3, 4)])
+
+
+def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """World-to-camera rotation of a camera at ``centre`` looking at ``target`` (z up)."""
+    z = (target - centre) / np.linalg.norm(target - centre)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z])
+
+
+def toy_capture() -> tuple[Capture, Result, np.ndarray]:
+    """3 cameras on a ring, 18 images at distinct instants, 5 points moving on a helix."""
+    rng = np.random.default_rng(0)
+    n = N_PER_STREAM * STREAMS
+    t = np.linspace(0.0, 1.0, n)
+    stream = np.arange(n) % STREAMS
+    frame = np.arange(n) // STREAMS
+    offsets = np.array([[0, 0, 1.7], [0, 0, 1.5], [0, 0, 1.0], [0.1, 0, 0.5], [0.1, 0, 0.05]])
+    centre = np.stack([0.5 * np.cos(2 * np.pi * t), 0.5 * np.sin(2 * np.pi * t), 0 * t], axis=1)
+    X = centre[:, None, :] + offsets[None]
+    angle = 2 * np.pi * stream / STREAMS
+    C = np.stack([4 * np.cos(angle), 4 * np.sin(angle), np.full(n, 1.0)], axis=1)
+    R = np.stack([look_at(c, np.array([0.0, 0.0, 1.0])) for c in C])
+    K = np.tile(np.array([[F, 0, W_IMG / 2], [0, F, H_IMG / 2], [0, 0, 1]]), (n, 1, 1))
+    x = project(X, K, R, C)
+    x[4, 2] = np.nan
+    confidence = rng.uniform(0.5, 1.0, (n, P))
+    confidence[4, 2] = 0.0
+    names = np.array([f"cam{s:02d}/{f:04d}.jpg" for s, f in zip(stream, frame, strict=True)])
+    capture = Capture(x=x, K=K, R=R, C=C, stream=stream, frame=frame, confidence=confidence,
+                      image_names=names)
+    order = np.arange(n)[::-1].copy()  # estimated order reversed: rank != index
+    chain = sp.diags(np.ones(n - 1), 1, shape=(n, n), format="csr")
+    result = Result(
+        X=X + 1e-3 * rng.normal(size=X.shape), order=order, A=chain, W=chain, D=np.ones(n),
+        events=(np.arange(n) >= 12).astype(np.int64), embedding=t,
+        cost_history=np.array([2.0, 1.0]), change_history=np.array([0.5, 1e-4]), nit=2,
+        success=True, message="converged", seconds=0.25, timings={"x_step": 0.1},
+    )
+    return capture, result, X
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
+    capture, result, X = toy_capture()
+    out = tmp_path_factory.mktemp("export") / "out"
+    static_rgb = np.array([[255, 0, 0], [0, 128, 255], [10, 20, 30]], dtype=np.uint8)
+    export_outputs(out, capture, result, static_xyz=X[0, :3], static_rgb=static_rgb, layout=LAYOUT,
+                   report={"inputs": {"workspace": "synthetic"}, "parameters": {"lambda1": 1e-5}})
+    return out, capture, result
+
+
+def test_frame_names_carry_rank_and_a_unique_stem() -> None:
+    assert frame_file_stem(3, "cam01/0012.jpg", 10) == "00003_cam01_0012"
+    assert frame_file_stem(7, "a b(1).png", 100_001) == "000007_a_b_1"
+
+
+def test_frames_read_back_in_open3d(exported) -> None:
+    out, capture, result = exported
+    files = sorted((out / "frames").glob("*.ply"))
+    assert len(files) == capture.num_images
+    for i, name in enumerate(capture.image_names):
+        path = out / "frames" / f"{frame_file_stem(int(result.rank[i]), name, len(files))}.ply"
+        cloud = o3d.t.io.read_point_cloud(str(path))
+        np.testing.assert_array_equal(cloud.point.point_id.numpy().ravel(), np.arange(P))
+        np.testing.assert_allclose(cloud.point.positions.numpy(), result.X[i], atol=1e-6, rtol=0)
+        np.testing.assert_array_equal(cloud.point.observed.numpy().ravel(), capture.visible[i])
+        np.testing.assert_allclose(cloud.point.confidence.numpy().ravel(), capture.confidence[i],
+                                   atol=1e-6)
+    first = Path(capture.image_names[result.order[0]])
+    assert files[0].name == f"00000_{first.parent.name}_{first.stem}.ply"
+
+
+def test_skeleton_and_static_clouds(exported) -> None:
+    out, capture, result = exported
+    skeletons = sorted((out / "skeleton").glob("*.ply"))
+    assert len(skeletons) == capture.num_images
+    lines = o3d.io.read_line_set(str(skeletons[0]))
+    np.testing.assert_array_equal(np.asarray(lines.lines), np.array(LAYOUT.edges))
+    np.testing.assert_allclose(np.asarray(lines.points), result.X[result.order[0]], atol=1e-6)
+    static = o3d.t.io.read_point_cloud(str(out / "static.ply"))
+    np.testing.assert_array_equal(static.point.colors.numpy(), [[255, 0, 0], [0, 128, 255],
+                                                                 [10, 20, 30]])
+
+
+def test_trajectories_npz_and_csv(exported) -> None:
+    out, capture, result = exported
+    with np.load(out / "trajectories.npz") as data:
+        np.testing.assert_array_equal(data["X"], result.X)
+        np.testing.assert_array_equal(data["order"], result.order)
+        np.testing.assert_array_equal(data["image_names"], capture.image_names)
+        np.testing.assert_array_equal(data["events"], result.events)
+    with open(out / "trajectories.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == ["rank", "image", "point_id", "x", "y", "z", "observed"]
+    assert len(rows) == capture.num_images * P
+    index = {name: i for i, name in enumerate(capture.image_names)}
+    for row in rows:
+        i, j = index[row["image"]], int(row["point_id"])
+        assert int(row["rank"]) == result.rank[i]
+        xyz = [float(row[k]) for k in "xyz"]
+        np.testing.assert_allclose(xyz, result.X[i, j], rtol=0, atol=1e-12)
+        assert int(row["observed"]) == int(capture.visible[i, j])
+    with open(out / "sequence.csv", newline="") as f:
+        seq = list(csv.DictReader(f))
+    assert [r["image"] for r in seq] == capture.image_names[result.order].tolist()
+    assert [int(r["rank"]) for r in seq] == list(range(capture.num_images))
+    assert [int(r["stream"]) for r in seq] == capture.stream[result.order].tolist()
+    assert [int(r["frame"]) for r in seq] == capture.frame[result.order].tolist()
+    assert [int(r["event"]) for r in seq] == result.events[result.order].tolist()
+
+
+def test_report_fields_and_errors(exported) -> None:
+    out, capture, result = exported
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"] == {"workspace": "synthetic"}
+    assert report["parameters"] == {"lambda1": 1e-5}
+    assert report["solver"]["iterations"] == 2 and report["solver"]["cost_history"] == [2.0, 1.0]
+    assert report["events"] == 2
+    assert [e["num_images"] for e in report["event_summaries"]] == [12, 6]
+    errors = reprojection_errors(capture, result.X)
+    stats = report["reprojection_error_px"]
+    assert stats["all"]["count"] == int(capture.visible.sum()) == capture.num_images * P - 1
+    assert stats["all"]["mean"] == pytest.approx(np.nanmean(errors))
+    name = str(capture.image_names[4])
+    assert stats["per_image"][name]["count"] == P - 1
+    assert stats["per_image"][name]["max"] == pytest.approx(np.nanmax(errors[4]))
+    assert [p["name"] for p in stats["per_point"]] == LAYOUT.point_names
+    assert stats["per_point"][2]["count"] == capture.num_images - 1
+
+
+def test_reprojection_error_is_in_pixels() -> None:
+    capture, _, X = toy_capture()
+    exact = reprojection_errors(capture, X)
+    assert np.nanmax(exact) < 1e-9
+    assert np.isnan(exact[4, 2]) and np.isfinite(exact).sum() == capture.visible.sum()
+    moved = X.copy()
+    depth = (capture.R[0] @ (X[0, 0] - capture.C[0]))[2]
+    moved[0, 0] += 0.01 * capture.R[0][0]  # 1 cm along the camera's x axis
+    assert reprojection_errors(capture, moved)[0, 0] == pytest.approx(F * 0.01 / depth, rel=1e-9)
+
+
+def test_existing_out_dir_is_refused_unless_overwrite(tmp_path) -> None:
+    capture, result, _ = toy_capture()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    with pytest.raises(InputError, match="exists"):
+        export_outputs(out, capture, result)
+    assert (out / "keep.txt").read_text() == "user data"
+    export_outputs(out, capture, result, overwrite=True)
+    assert not (out / "keep.txt").exists() and (out / "report.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_failure_leaves_nothing_behind(tmp_path, monkeypatch) -> None:
+    capture, result, _ = toy_capture()
+    calls = []
+    real = export_module.write_point_cloud
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise OSError("disk full")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(export_module, "write_point_cloud", failing)
+    with pytest.raises(OSError, match="disk full"):
+        export_outputs(tmp_path / "out", capture, result)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_mismatched_result_is_refused(tmp_path) -> None:
+    capture, result, _ = toy_capture()
+    result.order = result.order[:-1]
+    with pytest.raises(InputError, match="order"):
+        export_outputs(tmp_path / "out", capture, result)
+    assert list(tmp_path.iterdir()) == []

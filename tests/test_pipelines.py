@@ -1,0 +1,67 @@
+"""Smoke tests of the pipelines on the real data in ``../shared/data`` (skipped without it)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+from test_reconstruct_stage import body_at
+
+from dloe_sfm import colmap
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
+
+
+def load_pipeline(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(f"pipeline_{name}",
+                                                  PIPELINES / name / "pipeline.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.shared
+def test_lab_rig(shared_dir, tmp_path) -> None:
+    lab_rig = load_pipeline("lab_rig")
+    out = tmp_path / "lab_rig"
+    table = lab_rig.run(shared_dir / "data" / "pose2sim_single_trial", out, plots=False)
+    assert json.loads((out / "comparison.json").read_text()) == table
+    sync = table["sync_triangulation"]
+    # a correct calibration import gives ~13 px medians on these detections
+    assert 8 < sync["reprojection_error_px"]["median"] < 18
+    dloe = table["dloe_async"]
+    assert dloe["images"] == 100
+    held_dloe = dloe["held_out_views_error_px"]["median"]
+    held_sync = sync["held_out_views_error_px (leave one camera out)"]["median"]
+    assert held_dloe < 1.5 * held_sync
+    assert table["dloe_vs_sync_distance_mm"]["median"] < 100
+    assert len(list((out / "dloe" / "frames").glob("*.ply"))) == 100
+    assert (out / "workspace" / "sparse" / "0" / "images.bin").is_file()
+
+
+@pytest.mark.shared
+def test_crowd_photos(shared_dir, tmp_path) -> None:
+    """SfM of the 10 Sacre-Coeur photos, keypoints of a moving figure projected with the
+    reference model, then the reconstruct stage with overlays on the real images."""
+    crowd = load_pipeline("crowd_photos")
+    data = shared_dir / "data" / "sacre_coeur"
+    reference = colmap.load_workspace(data)
+    centre = np.median(reference.static_xyz, axis=0)
+    size = np.linalg.norm(np.ptp(np.percentile(reference.static_xyz, [10, 90], axis=0), axis=0))
+    keypoints = tmp_path / "keypoints"
+    keypoints.mkdir()
+    for k, name in enumerate(reference.image_names):
+        X = body_at(k / 9) * 0.1 * size + centre
+        uv = reference.project(name, X) - 0.5
+        values = np.concatenate([uv, np.ones((len(uv), 1))], axis=1).ravel().tolist()
+        (keypoints / f"{Path(name).stem}_keypoints.json").write_text(
+            json.dumps({"people": [{"pose_keypoints_2d": values}]}))
+    out = crowd.run(data / "images", keypoints, "openpose", tmp_path / "crowd")
+    report = json.loads((out / "report.json").read_text())
+    assert report["images"] == 10 and report["layout"] == "COCO_18"
+    assert len(list((out / "plots" / "overlays").glob("*.png"))) == 4
+    assert (tmp_path / "crowd" / "workspace" / "images").resolve() == (data / "images").resolve()

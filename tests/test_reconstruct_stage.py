@@ -1,0 +1,204 @@
+"""The ``reconstruct`` stage end to end: COLMAP model + OpenPose files -> section-4 outputs."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from test_export import toy_capture
+
+import dloe_sfm
+import dloe_sfm.reconstruct as stage
+from dloe_sfm import cli, colmap
+from dloe_sfm.core.solver import reconstruct as solver
+from dloe_sfm.keypoints.base import LAYOUTS
+
+NUM_CAMERAS, NUM_FRAMES = 4, 15  # 60 images, each at an instant of its own
+LAYOUT = LAYOUTS["COCO_18"]
+# a stick figure in COCO_18 order (x right, y forward, z up; model units, about 0.9 tall)
+BODY = np.array([
+    [0.0, 0.05, 0.85], [0.0, 0.0, 0.75], [-0.15, 0.0, 0.73], [-0.2, 0.0, 0.55], [-0.22, 0.05, 0.4],
+    [0.15, 0.0, 0.73], [0.2, 0.0, 0.55], [0.22, 0.05, 0.4], [-0.1, 0.0, 0.4], [-0.1, 0.02, 0.2],
+    [-0.1, 0.0, 0.0], [0.1, 0.0, 0.4], [0.1, 0.02, 0.2], [0.1, 0.0, 0.0], [-0.03, 0.08, 0.88],
+    [0.03, 0.08, 0.88], [-0.07, 0.04, 0.86], [0.07, 0.04, 0.86],
+])
+ARMS = [3, 4, 6, 7]
+
+
+def body_at(t: float) -> np.ndarray:
+    """(18, 3) joints at time t in [0, 1]: walking on an arc, turning, swinging its arms."""
+    pose = BODY.copy()
+    swing = 0.5 * np.sin(2 * np.pi * t)
+    for j, sign in zip(ARMS, (1, 1, -1, -1), strict=True):
+        d = pose[j] - pose[2 if j < 5 else 5]
+        c, s = np.cos(sign * swing), np.sin(sign * swing)
+        pose[j] = pose[2 if j < 5 else 5] + [d[0], c * d[1] - s * d[2], s * d[1] + c * d[2]]
+    turn = 0.8 * t
+    Rz = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
+    centre = np.array([0.3 * np.cos(np.pi * t), 0.3 * np.sin(np.pi * t), -0.45])
+    return pose @ Rz.T + centre
+
+
+def image_time(name: str) -> float:
+    """Instant of a synthetic image: camera c's frame f is taken at (NUM_CAMERAS f + c) / N."""
+    cam, frame = map(int, re.match(r"camera(\d+)_frame(\d+)", name).groups())
+    return (NUM_CAMERAS * frame + cam - 1) / (NUM_CAMERAS * NUM_FRAMES - 1)
+
+
+def write_openpose(folder: Path, ws: colmap.Workspace) -> dict[str, np.ndarray]:
+    """One OpenPose file per image (pixel convention (0, 0)); returns the true (18, 3) joints."""
+    folder.mkdir()
+    truth = {}
+    for name in ws.image_names:
+        X = body_at(image_time(name))
+        uv = ws.project(name, X) - 0.5  # COLMAP (0.5, 0.5) -> OpenPose (0, 0)
+        w, h = ws.image_size(name)
+        assert np.isfinite(uv).all() and (uv > 0).all() and (uv < [w, h]).all(), name
+        values = np.concatenate([uv, np.ones((len(uv), 1))], axis=1).ravel().tolist()
+        data = {"version": 1.3, "people": [{"pose_keypoints_2d": values}]}
+        (folder / f"{Path(name).stem}_keypoints.json").write_text(json.dumps(data))
+        truth[name] = X
+    return truth
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> tuple[Path, Path, dict[str, np.ndarray]]:
+    root = tmp_path_factory.mktemp("stage")
+    workspace = colmap.synthetic_workspace(root / "ws", num_cameras=NUM_CAMERAS,
+                                           num_frames=NUM_FRAMES, num_points3D=60)
+    ws = colmap.load_workspace(workspace)
+    assert len(ws.image_names) == NUM_CAMERAS * NUM_FRAMES
+    truth = write_openpose(root / "openpose", ws)
+    return workspace, root / "openpose", truth
+
+
+@pytest.fixture(scope="module")
+def reconstructed(scene, tmp_path_factory) -> Path:
+    workspace, keypoints, _ = scene
+    out = tmp_path_factory.mktemp("out") / "recon"
+    assert stage.main(workspace, keypoints, "openpose", out) == out
+    return out
+
+
+def model_snapshot(workspace: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((workspace / "sparse" / "0").iterdir())}
+
+
+def test_points_match_the_truth(scene, reconstructed) -> None:
+    _, _, truth = scene
+    with np.load(reconstructed / "trajectories.npz") as data:
+        X, names = data["X"], data["image_names"]
+    X_true = np.stack([truth[str(n)] for n in names])
+    scene_size = np.linalg.norm(np.ptp(X_true.reshape(-1, 3), axis=0))
+    error = np.linalg.norm(X - X_true, axis=2) / scene_size
+    # the first and last instants can only be extrapolated (DLOE's rows are convex
+    # combinations): they are held to a looser bound than the interior
+    by_time = error[np.argsort([image_time(str(n)) for n in names])]
+    assert by_time[1:-1].mean() < 5e-3
+    assert np.median(error) < 5e-3
+    assert by_time[[0, -1]].max() < 0.2
+
+
+def test_outputs_are_complete(scene, reconstructed) -> None:
+    _, _, truth = scene
+    frames = sorted((reconstructed / "frames").glob("*.ply"))
+    assert len(frames) == len(truth)
+    cloud = o3d.t.io.read_point_cloud(str(frames[0]))
+    np.testing.assert_array_equal(cloud.point.point_id.numpy().ravel(), np.arange(18))
+    assert len(list((reconstructed / "skeleton").glob("*.ply"))) == len(truth)
+    static = o3d.t.io.read_point_cloud(str(reconstructed / "static.ply"))
+    assert static.point.positions.shape[0] == 60
+    report = json.loads((reconstructed / "report.json").read_text())
+    assert report["inputs"]["format"] == "openpose" and report["layout"] == "COCO_18"
+    assert report["images"] == 60 and report["points"] == 18
+    assert report["reprojection_error_px"]["all"]["median"] < 1.0
+    for png in ("sequence.png", "affinity.png", "trajectories.png"):
+        assert (reconstructed / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_matches_python_and_leaves_the_model_alone(scene, reconstructed, tmp_path) -> None:
+    workspace, keypoints, _ = scene
+    before = model_snapshot(workspace)
+    out = tmp_path / "cli"
+    proc = subprocess.run(
+        [sys.executable, "-m", "dloe_sfm", "reconstruct", str(workspace), "--keypoints",
+         str(keypoints), "--format", "openpose", "--out", str(out), "--no-plots"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert not (out / "plots").exists()
+    with np.load(out / "trajectories.npz") as a, np.load(reconstructed / "trajectories.npz") as b:
+        np.testing.assert_allclose(a["X"], b["X"], atol=1e-9)
+    assert model_snapshot(workspace) == before
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str]:
+    """Exit code and the error message of ``dloe-sfm reconstruct ARGS`` (exactly one line)."""
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["reconstruct", *map(str, args)])
+    return exit_info.value.code, one_error_line(capsys.readouterr().err)
+
+
+def one_error_line(stderr: str) -> str:
+    """The ``dloe-sfm: error: ...`` line of stderr (logs and progress bars aside); exactly one."""
+    lines = [line for line in re.split(r"[\r\n]", stderr) if ": error: " in line]
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def test_missing_workspace(scene, tmp_path, capsys) -> None:
+    _, keypoints, _ = scene
+    code, err = run_cli([tmp_path / "nope", "--keypoints", keypoints, "--format", "openpose",
+                         "--out", tmp_path / "out"], capsys)
+    assert code == 2 and "nope" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_empty_workspace(scene, tmp_path, capsys) -> None:
+    _, keypoints, _ = scene
+    (tmp_path / "empty").mkdir()
+    code, err = run_cli([tmp_path / "empty", "--keypoints", keypoints, "--format", "openpose",
+                         "--out", tmp_path / "out"], capsys)
+    assert code == 2 and "no COLMAP model" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+def test_keypoints_of_unknown_images(scene, tmp_path, capsys) -> None:
+    workspace, _, _ = scene
+    folder = tmp_path / "other"
+    folder.mkdir()
+    person = {"people": [{"pose_keypoints_2d": [100.0, 100.0, 1.0] * 18}]}
+    for k in range(3):
+        (folder / f"holiday_{k:03d}_keypoints.json").write_text(json.dumps(person))
+    code, err = run_cli([workspace, "--keypoints", folder, "--format", "openpose",
+                         "--out", tmp_path / "out"], capsys)
+    assert code == 2 and "holiday_000" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_existing_out_dir_is_refused_by_the_cli(scene, tmp_path) -> None:
+    workspace, keypoints, _ = scene
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    proc = subprocess.run(
+        [sys.executable, "-m", "dloe_sfm.reconstruct", str(workspace), "--keypoints",
+         str(keypoints), "--format", "openpose", "--out", str(out)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "exists" in one_error_line(proc.stderr)
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+
+
+def test_package_reconstruct_stays_callable() -> None:
+    """Importing the stage module rebinds ``dloe_sfm.reconstruct``; it must still solve."""
+    capture, _, _ = toy_capture()
+    assert dloe_sfm.reconstruct is stage
+    np.testing.assert_array_equal(dloe_sfm.reconstruct(capture).X, solver(capture).X)
