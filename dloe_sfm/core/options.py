@@ -61,7 +61,9 @@ class Options:
     embedding: Embedding = Embedding.SHP
     max_iterations: int = 200
     tolerance: float = 1e-6
-    """Stop when the RMS change of X in one sweep falls below this (normalised units)."""
+    """Stop when the RMS change of X in one sweep falls below this (normalised units)..."""
+    cost_tolerance: float = 1e-5
+    """...or when the cost fell by less than this fraction over ``resequence_every`` sweeps."""
     segment_events: bool = True
     """Split the final graph into connected components (events) and solve each on its own."""
     progress: bool = False

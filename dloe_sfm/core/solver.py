@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -146,82 +147,110 @@ def _solve_events(capture: Capture, options: Options, joint: Result) -> Result:
                   scale=joint.scale)
 
 
+@dataclass
+class _State:
+    """The iterate of alternating convex search and its bookkeeping (normalised units)."""
+
+    X: np.ndarray
+    D: np.ndarray
+    prior_f: np.ndarray
+    f: np.ndarray
+    W_var: sp.csr_matrix | None = None
+    costs: list = field(default_factory=list)
+    changes: list = field(default_factory=list)
+    best: tuple | None = None
+
+
+def _alternate(st: _State, prob: Problem, frames: np.ndarray, options: Options, lambda2: float,
+               budget: int, timings: dict, bar) -> tuple[bool, str]:
+    """Up to ``budget`` W -> D -> X sweeps at ray weight ``lambda2``; (converged, message)."""
+    n = st.X.shape[0]
+    lam = {"lambda1": options.lambda1, "lambda2": lambda2, "lambda3": options.lambda3}
+    st.best = None  # costs at another lambda2 are not comparable
+    window = options.resequence_every
+    for it in range(budget):
+        t0 = time.perf_counter()
+        feats = st.prior_f[:, None] if options.spectral_prior else st.X.reshape(n, -1)
+        prior = st.prior_f if options.spectral_prior else None
+        cand = select_candidates(feats, prob, options.num_candidates,
+                                 min_angle=options.min_ray_angle, keep=st.W_var)
+        st.W_var = w_step(st.X, st.D, cand, prob, lambda1=options.lambda1,
+                          lambda3=options.lambda3, ridge=options.ridge, embedding=prior)
+        W = full_weights(st.W_var, prob)
+        t1 = time.perf_counter()
+        if not options.fixed_degree:
+            st.D = d_step(st.X, W, prob, lambda1=options.lambda1, lambda3=options.lambda3,
+                          floor=options.degree_floor, embedding=prior)
+            st.D[temporal_ends(st.f, prob.streams)] = options.end_degree
+        t2 = time.perf_counter()
+        X_new = x_step(W, st.D, prob, lambda1=options.lambda1, lambda2=lambda2, X_prev=st.X)
+        t3 = time.perf_counter()
+        timings["w_step"] += t1 - t0
+        timings["d_step"] += t2 - t1
+        timings["x_step"] += t3 - t2
+        cost = total_cost(X_new, W, st.D, prob, **lam)["total"]
+        change = float(np.sqrt(np.mean((X_new - st.X) ** 2)))
+        st.costs.append(cost)
+        st.changes.append(change)
+        bar.update()
+        bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
+        logger.debug("iteration %d: cost %.6e, rms change %.3e", len(st.costs), cost, change)
+        if st.best is None or cost <= st.best[0]:
+            st.best = (cost, X_new.copy(), st.W_var, W, st.D.copy())
+            # over-relaxation: alternation creeps along smooth depth errors that W keeps
+            # re-fitting; stepping omega times as far (affinely, so points stay on their rays)
+            # cuts the number of sweeps; a step that raises the cost is undone below
+            st.X = st.X + options.omega * (X_new - st.X)
+        else:
+            st.X, st.W_var, st.D = st.best[1].copy(), st.best[2], st.best[4].copy()
+        if change < options.tolerance:
+            return True, f"converged: rms change {change:.2e} < {options.tolerance:.0e}"
+        recent = st.costs[-(it + 1):]
+        if len(recent) > window and recent[-window - 1] - min(recent[-window:]) <= \
+                options.cost_tolerance * recent[-window - 1]:
+            return True, f"converged: cost fell by < {options.cost_tolerance:.0e} in {window} sweeps"
+        if (it + 1) % window == 0:
+            t0 = time.perf_counter()
+            st.prior_f, st.f = _sequence(st.X, prob, frames, options)
+            timings["sequencing"] += time.perf_counter() - t0
+            if options.fixed_degree:
+                st.D = _degrees(st.f, prob, options)
+    return False, f"stopped after {budget} iterations"
+
+
 def _solve(capture: Capture, options: Options) -> Result:
     t_start = time.perf_counter()
     timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0}
-    n, p = capture.num_images, capture.num_points
     X_world = initialise(capture, options)
     origin, scale = _normalisation(capture, X_world)
     prob = build_problem(capture, options, origin, scale)
     X = (X_world - origin) / scale
     timings["init"] = time.perf_counter() - t_start
-    lam = {"lambda1": options.lambda1, "lambda2": options.lambda2, "lambda3": options.lambda3}
-    W_var: sp.csr_matrix | None = None
     t0 = time.perf_counter()
     prior_f, f = _sequence(X, prob, capture.frame, options)
     timings["sequencing"] += time.perf_counter() - t0
-    D = _degrees(f, prob, options)
-    costs, changes = [], []
-    best = None
-    success, message = False, f"stopped after max_iterations = {options.max_iterations}"
-    bar = tqdm(range(options.max_iterations), desc="DLOE", unit="it", disable=not options.progress,
-               leave=False)
-    for it in bar:
-        t0 = time.perf_counter()
-        feats = prior_f[:, None] if options.spectral_prior else X.reshape(n, -1)
-        cand = select_candidates(feats, prob, options.num_candidates, min_angle=options.min_ray_angle,
-                                 keep=W_var)
-        W_var = w_step(X, D, cand, prob, lambda1=options.lambda1, lambda3=options.lambda3,
-                       ridge=options.ridge, embedding=prior_f if options.spectral_prior else None)
-        W = full_weights(W_var, prob)
-        t1 = time.perf_counter()
-        if not options.fixed_degree:
-            D = d_step(X, W, prob, lambda1=options.lambda1, lambda3=options.lambda3,
-                       floor=options.degree_floor,
-                       embedding=prior_f if options.spectral_prior else None)
-            D[temporal_ends(f, prob.streams)] = options.end_degree
-        t2 = time.perf_counter()
-        X_new = x_step(W, D, prob, lambda1=options.lambda1, lambda2=options.lambda2, X_prev=X)
-        t3 = time.perf_counter()
-        timings["w_step"] += t1 - t0
-        timings["d_step"] += t2 - t1
-        timings["x_step"] += t3 - t2
-        cost = total_cost(X_new, W, D, prob, **lam)["total"]
-        change = float(np.sqrt(np.mean((X_new - X) ** 2)))
-        costs.append(cost)
-        changes.append(change)
-        bar.set_postfix(cost=f"{cost:.3e}", change=f"{change:.1e}")
-        logger.debug("iteration %d: cost %.6e, rms change %.3e", it, cost, change)
-        if best is None or cost <= best[0]:
-            best = (cost, X_new.copy(), W_var, W, D.copy())
-            # over-relaxation: alternation creeps along smooth depth errors that W keeps
-            # re-fitting; stepping omega times as far (affinely, so points stay on their rays)
-            # cuts the number of sweeps; a step that raises the cost is undone below
-            X = X + options.omega * (X_new - X)
-        else:
-            X, W_var, D = best[1].copy(), best[2], best[4].copy()
-        if change < options.tolerance:
-            success, message = True, f"converged: rms change {change:.2e} < {options.tolerance:.0e}"
-            break
-        if (it + 1) % options.resequence_every == 0:
-            t0 = time.perf_counter()
-            prior_f, f = _sequence(X, prob, capture.frame, options)
-            timings["sequencing"] += time.perf_counter() - t0
-            if options.fixed_degree:
-                D = _degrees(f, prob, options)
-    bar.close()
-    _, X, W_var, W, D = best
+    st = _State(X=X, D=_degrees(f, prob, options), prior_f=prior_f, f=f)
+    with tqdm(total=options.max_iterations, desc="DLOE", unit="it", leave=False,
+              disable=not options.progress) as bar:
+        # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
+        # settle W first; the soft phase then only refines
+        success, message = _alternate(st, prob, capture.frame, options, np.inf,
+                                      options.max_iterations, timings, bar)
+        if np.isfinite(options.lambda2):
+            st.X = st.best[1].copy()
+            success, message = _alternate(st, prob, capture.frame, options, options.lambda2,
+                                          max(options.max_iterations - len(st.costs), 1), timings,
+                                          bar)
+    _, X, _, W, D = st.best
     t0 = time.perf_counter()
     _, f = _sequence(X, prob, capture.frame, options)
     timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(D) @ W)
-    events = segment_events(A)
-    X_out = X * scale + origin
-    return Result(X=X_out, order=order_from_embedding(f), A=A, W=W, D=D, events=events,
-                  embedding=f * scale,
-                  cost_history=np.array(costs), change_history=np.array(changes), nit=len(costs),
-                  success=success, message=message, seconds=time.perf_counter() - t_start,
-                  timings=timings, scale=scale)
+    return Result(X=X * scale + origin, order=order_from_embedding(f), A=A, W=W, D=D,
+                  events=segment_events(A), embedding=f * scale,
+                  cost_history=np.array(st.costs), change_history=np.array(st.changes),
+                  nit=len(st.costs), success=success, message=message,
+                  seconds=time.perf_counter() - t_start, timings=timings, scale=scale)
 
 
 def oracle_reconstruct(capture: Capture, times: np.ndarray, *, lambda1: float = 0.0,

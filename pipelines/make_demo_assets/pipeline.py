@@ -47,7 +47,7 @@ MARKER_HUES = (0.0, 30.0, 58.0, 120.0, 185.0, 230.0, 275.0, 320.0)
 MARKER_NAMES = ("red", "orange", "yellow", "green", "cyan", "blue", "violet", "magenta")
 NOISE_SIGMA = 2.0  # sensor noise, grey levels
 JPEG_QUALITY = 60
-MAX_FEATURES = 1536
+MAX_FEATURES = 2048
 SHAPES_PER_M2 = 12
 GLYPHS = list(string.ascii_uppercase + string.digits)
 
@@ -584,6 +584,26 @@ def readme(stats: dict) -> str:
     """The workspace's README with the measured statistics of this build."""
     whole, every, model = stats["error_whole"], stats["error_all"], stats["error_model"]
     centre, rot = stats["centre_error_m"], stats["rotation_error_deg"]
+    measured = "\n".join([
+        f"- Generator run time: {stats['seconds_total']:.0f} s on 2 CPU cores "
+        f"({stats['seconds_render']:.0f} s rendering, {stats['seconds_sfm']:.0f} s SfM); "
+        f"images {stats['images_bytes'] / 1e6:.1f} MB.",
+        f"- Registered images: {stats['registered']} / {stats['images']}; "
+        f"3D points: {stats['points3D']}; mean track length {stats['mean_track_length']:.1f}.",
+        f"- Mean reprojection error: {stats['reprojection_px']:.3f} px.",
+        f"- Camera centres after alignment: mean {centre.mean() * 1000:.1f} mm, "
+        f"max {centre.max() * 1000:.1f} mm; rotations: mean {rot.mean():.3f} deg, "
+        f"max {rot.max():.3f} deg.",
+        f"- Marker detections: {stats['detections']} of {stats['visible']} visible markers, "
+        f"{stats['false_detections']} of hidden ones.",
+        f"- Detection vs the true centre projected by the true camera: "
+        f"median {np.median(whole):.3f} px, max {whole.max():.2f} px for the {whole.size} "
+        f"wholly visible markers (silhouette > 99 % unoccluded); "
+        f"median {np.median(every):.3f} px, max {every.max():.2f} px for all.",
+        f"- Detection vs the true centre projected by the aligned COLMAP model (what a "
+        f"reconstruction from this workspace sees): median {np.median(model):.3f} px, "
+        f"max {model.max():.2f} px.",
+    ])
     return f"""# Demo workspace: four unsynchronised cameras, eight moving markers
 
 A rendered COLMAP workspace for `dloe-sfm demo`. Four static cameras (640x480, f = {FOCAL:g} px,
@@ -615,20 +635,7 @@ global mapping); regenerate from the repository root with
   view), `visible_fraction` (N, P) of each sphere's silhouette, `marker_names` (P,).
 
 ## Measured on this build
-- Generator run time: {stats['seconds_total']:.0f} s on 2 CPU cores ({stats['seconds_render']:.0f} s rendering, \
-  {stats['seconds_sfm']:.0f} s SfM); images {stats['images_bytes'] / 1e6:.1f} MB.
-- Registered images: {stats['registered']} / {stats['images']}; 3D points: {stats['points3D']}; \
-  mean track length: {stats['mean_track_length']:.1f}.
-- Mean reprojection error: {stats['reprojection_px']:.3f} px.
-- Camera centres after alignment: mean {centre.mean() * 1000:.1f} mm, \
-  max {centre.max() * 1000:.1f} mm; rotations: mean {rot.mean():.3f} deg, max {rot.max():.3f} deg.
-- Marker detections: {stats['detections']} of {stats['visible']} visible markers, \
-  {stats['false_detections']} of hidden ones.
-- Detection vs the true centre projected by the true camera: median {np.median(whole):.3f} px, \
-  max {whole.max():.2f} px for the {whole.size} wholly visible markers (silhouette > 99 % \
-  unoccluded); median {np.median(every):.3f} px, max {every.max():.2f} px for all.
-- Detection vs the true centre projected by the aligned COLMAP model (what a reconstruction \
-  from this workspace sees): median {np.median(model):.3f} px, max {model.max():.2f} px.
+{measured}
 """
 
 

@@ -1,0 +1,125 @@
+"""``dloe-sfm solve / simulate / evaluate`` end to end, and bad input: one line, exit code 2."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dloe_sfm.config import load_options
+from dloe_sfm.core.options import Embedding
+from dloe_sfm.errors import InputError
+from dloe_sfm.io import load_capture, load_result, save_npz
+
+
+def dloe(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "dloe_sfm", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, timeout=300)
+
+
+@pytest.fixture(scope="module")
+def capture_file(tmp_path_factory, assets_dir):
+    out = tmp_path_factory.mktemp("cli") / "capture.npz"
+    r = dloe("simulate", assets_dir / "mocap" / "jumping_1.npz", "--out", out, "--duration", "1.0",
+             "--seed", "3")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_simulate_writes_the_protocol(capture_file):
+    cap = load_capture(capture_file)
+    assert cap.num_points == 28 and np.unique(cap.stream).tolist() == [0, 1, 2, 3]
+    t = cap.extras["t_true"]
+    assert np.unique(t).size == t.size  # no two images share an instant
+    for s in range(4):  # 30 Hz per stream, offsets of a quarter period
+        ts = np.sort(t[cap.stream == s])
+        assert np.allclose(np.diff(ts), 1 / 30) and np.isclose(ts[0] * 120, s)
+
+
+def test_solve_then_evaluate(capture_file, tmp_path):
+    out = tmp_path / "result.npz"
+    r = dloe("solve", capture_file, "--out", out, "--set", "embedding=shp")
+    assert r.returncode == 0, r.stderr
+    res = load_result(out)
+    n = load_capture(capture_file).num_images
+    assert res["X"].shape == (n, 28, 3) and sorted(res["order"].tolist()) == list(range(n))
+    assert res["A"].shape == (n, n) and res["A"].nnz < 12 * n
+    assert res["events"].shape == (n,) and res["cost_history"].ndim == 1 and res["seconds"] > 0
+    r = dloe("evaluate", out, capture_file, "--json", tmp_path / "scores.json")
+    assert r.returncode == 0, r.stderr
+    scores = dict(line.split() for line in r.stdout.strip().splitlines())
+    assert float(scores["kendall_tau"]) > 0.99
+    assert float(scores["error_mm"]) < 1.5 * float(scores["oracle_mm"]) + 0.5
+    assert float(scores["error_mm"]) < 0.5 * float(scores["pseudo_triangulation_mm"])
+
+
+def corrupt(src, dst, **changes):
+    with np.load(src) as d:
+        arrays = {k: d[k] for k in d.files}
+    for k, v in changes.items():
+        if v is None:
+            arrays.pop(k)
+        else:
+            arrays[k] = v(arrays[k].copy()) if callable(v) else v
+    save_npz(dst, **arrays)
+    return dst
+
+
+def nan_camera(C):
+    C[3] = np.nan
+    return C
+
+
+def blind_image(x):
+    x[5] = np.nan
+    return x
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"K": None}, "missing key(s) 'K'"),
+    ({"x": lambda x: x[:, :, :1]}, "field 'x' must have shape (N, P, 2)"),
+    ({"R": lambda R: R[:-1]}, "field 'R' must have shape"),
+    ({"C": nan_camera}, "field 'C' is not finite for image 3"),
+    ({"stream": lambda s: np.zeros_like(s)}, "one stream"),
+    ({"x": blind_image}, "image 5 ('cam0/00005') observes no point"),
+    ({"x": lambda x: np.where(np.isnan(x), x, np.inf)}, "infinite"),
+])
+def test_bad_captures_exit_2_and_write_nothing(capture_file, tmp_path, changes, message):
+    bad = corrupt(capture_file, tmp_path / "bad.npz", **changes)
+    out = tmp_path / "result.npz"
+    r = dloe("solve", bad, "--out", out)
+    assert r.returncode == 2
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and str(bad) in err[0], err
+    assert not out.exists() and list(tmp_path.glob(".result*")) == []
+
+
+def test_not_an_npz(tmp_path):
+    bad = tmp_path / "capture.npz"
+    bad.write_text("hello")
+    r = dloe("solve", bad, "--out", tmp_path / "r.npz")
+    assert r.returncode == 2 and "not a readable .npz" in r.stderr
+
+
+def test_config_file_and_overrides(tmp_path):
+    cfg = tmp_path / "solver.toml"
+    cfg.write_text("[solver]\nnum_candidates = 6\nembedding = 'mds'\nlambda2 = 0.01\n")
+    opts = load_options(cfg, ["num_candidates=5", "spectral_prior=true"])
+    assert opts.num_candidates == 5 and opts.embedding is Embedding.MDS
+    assert opts.lambda2 == 0.01 and opts.spectral_prior is True
+    with pytest.raises(InputError, match="unknown option 'lamda1'"):
+        load_options(None, ["lamda1=3"])
+    with pytest.raises(InputError, match="cannot take the value"):
+        load_options(None, ["num_candidates=many"])
+    cfg.write_text("num_candidates = [")
+    with pytest.raises(InputError, match="invalid TOML"):
+        load_options(cfg)
+
+
+def test_every_stage_has_help():
+    for stage in ("solve", "reconstruct", "simulate", "evaluate", "demo", "benchmark"):
+        r = dloe(stage, "--help")
+        assert r.returncode == 0 and "usage" in r.stdout, (stage, r.stderr)
+    r = subprocess.run([sys.executable, "-m", "dloe_sfm.solve", "--help"], capture_output=True,
+                       text=True)
+    assert r.returncode == 0 and "python -m dloe_sfm.solve" in r.stdout
