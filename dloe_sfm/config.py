@@ -33,7 +33,7 @@ def _coerce(name: str, value, source: str):
             return bool(value)
         if isinstance(default, int):
             return int(value)
-        if isinstance(default, float):
+        if isinstance(default, float) or default is None:  # None: an optional number (lambda2)
             return float(value)
     except ValueError:
         raise InputError(f"{source}: option '{name}' cannot take the value {value!r}") from None

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from enum import Enum
 
@@ -13,6 +12,7 @@ class Embedding(str, Enum):
     SPECTRAL = "spectral"  # Fiedler vector of the Laplacian of affinity 1 / distance
     MDS = "mds"  # leading eigenvector of classical MDS
     SHP = "shp"  # approximate shortest Hamiltonian path (nearest neighbour + 2-opt)
+    AFFINE = "affine"  # constant-rate streams: per-stream offset and rate from DTW (else SHP)
 
 
 class Distance(str, Enum):
@@ -20,6 +20,11 @@ class Distance(str, Enum):
 
     ARC = "arc"  # in-stream path length + order-preserving DTW across streams
     EUCLIDEAN = "euclidean"  # plain distance between 3D shapes
+
+
+RAY_WEIGHT_SCALE = 4e-8
+"""Calibrated on the mocap protocol (pipelines/targets): 2 px at f = 1000 gives lambda2 = 1e-2.
+It is the squared scale, in normalised units, of what the smoothness rows cannot explain."""
 
 
 @dataclass(kw_only=True)
@@ -33,8 +38,13 @@ class Options:
 
     lambda1: float = 1e-5
     """Compactness weight (T term) on ``D_ii W_ij |X_i - X_j|^2``; normalised length^2."""
-    lambda2: float = math.inf
-    """Ray weight (O term); ``inf`` pins observed points to their rays and solves for depths."""
+    lambda2: float | None = None
+    """Ray weight (O term); ``inf`` pins observed points to their rays and solves for depths.
+    None: derived from ``noise_px`` (``inf`` for exact detections)."""
+    noise_px: float = 0.0
+    """Expected std of the 2D detections, pixels. With lambda2 = None it sets the ray weight
+    ``lambda2 = RAY_WEIGHT_SCALE (f / noise_px)^2`` (f: median focal length in pixels): solve with
+    hard rays, then refine ``soft_iterations`` sweeps with soft ones."""
     lambda3: float = 1e-7
     """Ray-convergence weight (R term): ``sum_ijp (D_ii W_ij r_ip . r_jp)^2``, unit-free."""
     ridge: float = 1e-9
@@ -51,15 +61,17 @@ class Options:
     """k: W row i may only use the k nearest other-stream images (plus its previous support)."""
     min_ray_angle: float = 15.0
     """Degrees: image pairs whose rays are closer than this to (anti)parallel are not neighbours."""
-    spectral_prior: bool = False
+    spectral_prior: bool = True
     """Use ``(f_i - f_j)^2`` of the sequencing embedding in T during the W- and D-steps."""
     omega: float = 1.9
     """Over-relaxation of the X update (1 = plain alternation); steps that raise the cost are undone."""
     resequence_every: int = 10
     """Recompute the sequencing embedding of the spectral prior every this many iterations."""
     distance: Distance = Distance.ARC
-    embedding: Embedding = Embedding.SHP
+    embedding: Embedding = Embedding.AFFINE
     max_iterations: int = 200
+    soft_iterations: int = 8
+    """With a finite lambda2: sweeps with soft rays after the hard-ray solve has converged."""
     tolerance: float = 1e-6
     """Stop when the RMS change of X in one sweep falls below this (normalised units)..."""
     cost_tolerance: float = 1e-5
@@ -68,6 +80,14 @@ class Options:
     """Split the final graph into connected components (events) and solve each on its own."""
     progress: bool = False
     """Show a tqdm bar over the outer iterations."""
+
+    def ray_weight(self, focal_px: float) -> float:
+        """The lambda2 in force for cameras of focal length ``focal_px``."""
+        if self.lambda2 is not None:
+            return self.lambda2
+        if self.noise_px <= 0:
+            return float("inf")
+        return RAY_WEIGHT_SCALE * (focal_px / self.noise_px) ** 2
 
     def replace(self, **changes) -> Options:
         """A copy with some options changed (unknown names raise ValueError)."""

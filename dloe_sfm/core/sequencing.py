@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.stats import kendalltau
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.stats import kendalltau, theilslopes
 
 from .options import Distance, Embedding
 
@@ -121,6 +123,68 @@ def arc_distance(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.n
     return Z
 
 
+def affine_time(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray | None:
+    """Time of every image assuming each stream runs at a constant frame rate (videos).
+
+    Stream s's images are at ``t = a_s + b_s frame``. Every image of a stream is placed on every
+    other stream's polyline by order-preserving DTW, which gives it a fractional frame number
+    there; a robust (Theil-Sen) line through those pairs gives the relative offset and rate of
+    the two streams, and a least-squares fit over all pairs gives every (a_s, b_s), with the
+    longest stream as the reference clock. Lone photos take the median time at which the streams'
+    polylines place them. Returns (N,) times in the reference stream's frames, or None when no
+    two streams have two or more images.
+    """
+    n = X.shape[0]
+    F = X.reshape(n, -1)
+    members = stream_members(streams, frames)
+    lines = [m for m in members if m.size >= 2]
+    if len(lines) < 2:
+        return None
+    k = len(lines)
+    log_rate_rows, offset_rows = [], []
+    place = {}  # (line c, image i) -> fractional frame of c at which i sits
+    arcs = [arc_length(F[idx]) for idx in lines]
+    for c, idx in enumerate(lines):
+        fr = frames[idx].astype(float)
+        for other in members:
+            if other is idx:
+                continue
+            pos = dtw_positions(F[other], F[idx])
+            # arc length back to a (fractional) frame number on the polyline of c
+            arc, keep = np.unique(arcs[c], return_index=True)
+            at = np.interp(pos, arc, fr[keep]) if arc.size > 1 else np.full(pos.size, fr[0])
+            for i, v in zip(other, at, strict=True):
+                place[(c, int(i))] = v
+            if other.size >= 2:
+                d = next(j for j, m in enumerate(lines) if m is other)
+                slope, icpt, *_ = theilslopes(at, frames[other].astype(float))
+                if slope > 0:
+                    log_rate_rows.append((d, c, np.log(slope), icpt, other.size))
+    # t = a_s + b_s f; f_c = icpt + slope f_d  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
+    ref = int(np.argmax([m.size for m in lines]))
+    A = np.zeros((len(log_rate_rows) + 1, k))
+    y = np.zeros(len(log_rate_rows) + 1)
+    wts = np.ones(len(log_rate_rows) + 1)
+    for r, (d, c, lslope, _, size) in enumerate(log_rate_rows):
+        A[r, d], A[r, c], y[r], wts[r] = 1.0, -1.0, lslope, np.sqrt(size)
+    A[-1, ref], wts[-1] = 1.0, 1e3
+    log_b = np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0]
+    b = np.exp(log_b)
+    A[:] = 0.0
+    for r, (d, c, _, icpt, _) in enumerate(log_rate_rows):
+        A[r, d], A[r, c], y[r] = 1.0, -1.0, b[c] * icpt
+    A[-1, ref], y[-1] = 1.0, 0.0
+    a = np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0]
+    t = np.full(n, np.nan)
+    for c, idx in enumerate(lines):
+        t[idx] = a[c] + b[c] * frames[idx]
+    for m in members:
+        if m.size == 1:
+            i = int(m[0])
+            t[i] = np.median([a[c] + b[c] * place[(c, i)] for c in range(k)])
+    return t
+
+
 def euclidean_distance(X: np.ndarray) -> np.ndarray:
     """|X_i - X_j| between whole shapes, (N, N)."""
     F = X.reshape(X.shape[0], -1)
@@ -139,9 +203,9 @@ def mds_embedding(Z: np.ndarray) -> np.ndarray:
     """Classical MDS to one dimension: the leading eigenvector of -1/2 J Z^2 J, in Z's units."""
     n = Z.shape[0]
     B = Z ** 2
-    B = B - B.mean(axis=0, keepdims=True) - B.mean(axis=1, keepdims=True) + B.mean()
-    vals, vecs = sla.eigh(-0.5 * B, subset_by_index=[n - 1, n - 1])
-    return vecs[:, 0] * np.sqrt(max(vals[0], 0.0))
+    B = -0.5 * (B - B.mean(axis=0, keepdims=True) - B.mean(axis=1, keepdims=True) + B.mean())
+    val, vec = _top_eigenpairs(B, 1)
+    return vec[:, 0] * np.sqrt(max(val[0], 0.0)) if n > 1 else np.zeros(n)
 
 
 def spectral_embedding(Z: np.ndarray) -> np.ndarray:
@@ -151,9 +215,27 @@ def spectral_embedding(Z: np.ndarray) -> np.ndarray:
         Aff = np.where(Z > 0, 1.0 / np.maximum(Z, 1e-300), 0.0)
     np.fill_diagonal(Aff, 0.0)
     Aff /= max(Aff.max(), 1e-300)
-    L = np.diag(Aff.sum(axis=1)) - Aff
-    _, vecs = sla.eigh(L, subset_by_index=[1, 1] if n > 1 else [0, 0])
-    return vecs[:, 0]
+    deg = Aff.sum(axis=1)
+    L = -Aff
+    L[np.diag_indices(n)] = deg
+    if n <= 200:
+        return sla.eigh(L, subset_by_index=[1, 1])[1][:, 0]
+    # smallest eigenvector orthogonal to the constant one (L's null vector), Jacobi-preconditioned
+    x0 = np.linspace(-1.0, 1.0, n)[:, None]
+    _, vec = spla.lobpcg(L, x0, Y=np.ones((n, 1)), M=sp.diags(1.0 / deg), largest=False,
+                         tol=1e-9, maxiter=2000)
+    return vec[:, 0]
+
+
+def _top_eigenpairs(M: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The k largest eigenpairs of a symmetric matrix, in decreasing order (Lanczos when large)."""
+    n = M.shape[0]
+    if n <= 200:
+        vals, vecs = sla.eigh(M, subset_by_index=[n - k, n - 1])
+    else:
+        vals, vecs = spla.eigsh(M, k=k, which="LA", v0=np.ones(n), tol=1e-10)
+    order = np.argsort(-vals)
+    return vals[order], vecs[:, order]
 
 
 def shp_embedding(Z: np.ndarray, *, max_passes: int = 50) -> np.ndarray:

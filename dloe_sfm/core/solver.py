@@ -16,6 +16,7 @@ from .init import fill_missing, pseudo_triangulate
 from .options import Embedding, Options
 from .result import Result
 from .sequencing import (
+    affine_time,
     distance_matrix,
     line_embedding,
     mds_embedding,
@@ -76,18 +77,26 @@ def _degrees(f: np.ndarray, prob: Problem, options: Options) -> np.ndarray:
     return D
 
 
-def _sequence(X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options
-              ) -> tuple[np.ndarray, np.ndarray]:
-    """(prior embedding in length units, final line embedding) oriented by the streams.
+def _sequence(X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options, *,
+              final: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
-    The prior needs lengths: the spectral ranking's Fiedler vector is unit-free, so then the prior
-    falls back to classical MDS of the same distances.
+    With the ``affine`` embedding and video streams, both come from the streams' affine clocks
+    (the prior rescaled to the MDS embedding's length units, which the T term needs). Otherwise
+    the loop uses classical MDS of the distances (fast) and ``final`` computes the order with
+    ``options.embedding``.
     """
     Z = distance_matrix(X, prob.streams, frames, options.distance)
-    f = orient(line_embedding(Z, options.embedding), prob.streams, frames)
-    if options.embedding is Embedding.SPECTRAL:
-        return orient(mds_embedding(Z), prob.streams, frames), f
-    return f, f
+    mds = orient(mds_embedding(Z), prob.streams, frames)
+    if options.embedding is Embedding.AFFINE:
+        t = affine_time(X, prob.streams, frames)
+        if t is not None:
+            slope = np.polyfit(t, mds, 1)[0]
+            return t * abs(slope), t
+    if not final or options.embedding is Embedding.MDS:
+        return mds, mds
+    kind = Embedding.SHP if options.embedding is Embedding.AFFINE else options.embedding
+    return mds, orient(line_embedding(Z, kind), prob.streams, frames)
 
 
 def reconstruct(capture: Capture, options: Options | None = None) -> Result:
@@ -230,20 +239,21 @@ def _solve(capture: Capture, options: Options) -> Result:
     prior_f, f = _sequence(X, prob, capture.frame, options)
     timings["sequencing"] += time.perf_counter() - t0
     st = _State(X=X, D=_degrees(f, prob, options), prior_f=prior_f, f=f)
-    with tqdm(total=options.max_iterations, desc="DLOE", unit="it", leave=False,
+    lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
+    total = options.max_iterations + (options.soft_iterations if np.isfinite(lambda2) else 0)
+    with tqdm(total=total, desc="DLOE", unit="it", leave=False,
               disable=not options.progress) as bar:
         # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
         # settle W first; the soft phase then only refines
         success, message = _alternate(st, prob, capture.frame, options, np.inf,
                                       options.max_iterations, timings, bar)
-        if np.isfinite(options.lambda2):
+        if np.isfinite(lambda2):
             st.X = st.best[1].copy()
-            success, message = _alternate(st, prob, capture.frame, options, options.lambda2,
-                                          max(options.max_iterations - len(st.costs), 1), timings,
-                                          bar)
+            success, message = _alternate(st, prob, capture.frame, options, lambda2,
+                                          options.soft_iterations, timings, bar)
     _, X, _, W, D = st.best
     t0 = time.perf_counter()
-    _, f = _sequence(X, prob, capture.frame, options)
+    _, f = _sequence(X, prob, capture.frame, options, final=True)
     timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(D) @ W)
     return Result(X=X * scale + origin, order=order_from_embedding(f), A=A, W=W, D=D,
