@@ -31,6 +31,7 @@ import dloe_sfm
 from dloe_sfm.calibration import import_calibration, read_calibration
 from dloe_sfm.colmap import Workspace, load_workspace
 from dloe_sfm.config import load_options
+from dloe_sfm.core.options import Options
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import error_stats, reprojection_errors
 from dloe_sfm.io import atomic_path, save_npz
@@ -107,7 +108,8 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
     calib = data / "calibration" / "Calib.qca.txt"
     if out.exists() and not overwrite:
         raise InputError(f"{out}: output folder exists (use --overwrite to replace it)")
-    options = load_options(None, overrides)
+    # OpenPose on 1088 x 1920 video: a few pixels of detection noise (see the README)
+    options = load_options(None, overrides, base=Options(noise_px=5.0))
     tic = time.perf_counter()
 
     serials = [c.name for c in read_calibration(calib)]
