@@ -1,4 +1,4 @@
-"""``dloe-sfm``: one subcommand per pipeline stage (each stage is also ``python -m dloe_sfm.<stage>``)."""
+"""``dloe-sfm``: one subcommand per pipeline stage (also ``python -m dloe_sfm.<stage>``)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,10 @@ from .errors import InputError
 # subcommand -> (module with ``configure_parser(parser)`` and ``run(args) -> int``, summary)
 STAGES = {
     "solve": ("dloe_sfm.solve", "run DLOE on a capture file and write a result file"),
-    "reconstruct": ("dloe_sfm.reconstruct",
-                    "reconstruct moving points from keypoints on a COLMAP workspace"),
+    "reconstruct": (
+        "dloe_sfm.reconstruct",
+        "reconstruct moving points from keypoints on a COLMAP workspace",
+    ),
     "simulate": ("dloe_sfm.simulate", "simulate an unsynchronised capture of a mocap sequence"),
     "evaluate": ("dloe_sfm.evaluate", "score a result against ground truth (mm, Kendall tau)"),
     "demo": ("dloe_sfm.demo", "run the whole chain on the bundled demo workspace"),

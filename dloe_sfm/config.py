@@ -40,9 +40,12 @@ def _coerce(name: str, value, source: str):
     return value
 
 
-def load_options(config: Path | str | None = None, overrides: list[str] | None = None,
-                 base: Options | None = None) -> Options:
-    """Options = ``base`` (defaults) <- TOML file (top level or ``[solver]`` table) <- ``--set`` pairs."""
+def load_options(
+    config: Path | str | None = None,
+    overrides: list[str] | None = None,
+    base: Options | None = None,
+) -> Options:
+    """Options = ``base`` <- TOML file (top level or ``[solver]`` table) <- ``--set`` pairs."""
     changes: dict = {}
     if config is not None:
         config = Path(config)

@@ -29,30 +29,43 @@ def score(out: Path, ground_truth: Path) -> dict[str, float]:
         idx = np.array([row[n] for n in names])
         X_true, t_true = gt["X_true"][idx], gt["t_true"][idx]
         e = 1000 * np.linalg.norm(res["X"] - X_true, axis=2)
-        return {"images": len(names), "error_mm": float(e.mean()),
-                "error_median_mm": float(np.median(e)),
-                "kendall_tau": kendall_tau(res["order"], t_true)}
+        return {
+            "images": len(names),
+            "error_mm": float(e.mean()),
+            "error_median_mm": float(np.median(e)),
+            "kendall_tau": kendall_tau(res["order"], t_true),
+        }
 
 
-def main(out: Path = Path("outputs/demo"), *, workspace: Path = DEMO, overwrite: bool = True,
-         plots: bool = True) -> dict[str, float]:
-    """``dloe-sfm reconstruct`` on ``workspace`` (default: assets/demo) into ``out``; returns scores.
+def main(
+    out: Path = Path("outputs/demo"),
+    *,
+    workspace: Path = DEMO,
+    overwrite: bool = True,
+    plots: bool = True,
+) -> dict[str, float]:
+    """``dloe-sfm reconstruct`` on ``workspace`` (default: assets/demo) into ``out``; scores.
 
     The demo owns ``out`` and replaces it on every run unless ``overwrite=False``.
     """
     if not (workspace / "keypoints.csv").exists():
         raise InputError(f"{workspace}: not a demo workspace (no keypoints.csv)")
     tic = time.perf_counter()
-    reconstruct_main(workspace, workspace / "keypoints.csv", "csv", out, overwrite=overwrite,
-                     plots=plots)
+    reconstruct_main(
+        workspace, workspace / "keypoints.csv", "csv", out, overwrite=overwrite, plots=plots
+    )
     scores = score(Path(out), workspace / "ground_truth.npz")
     scores["seconds"] = time.perf_counter() - tic
     return scores
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("outputs/demo"),
-                        help="output folder (default: outputs/demo, replaced on every run)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path("outputs/demo"),
+        help="output folder (default: outputs/demo, replaced on every run)",
+    )
     parser.add_argument("--workspace", type=Path, default=DEMO, help=argparse.SUPPRESS)
     parser.add_argument("--no-plots", dest="plots", action="store_false", help="skip plots/")
 
@@ -60,10 +73,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     s = main(args.out, workspace=args.workspace, plots=args.plots)
     out = args.out
-    print(f"demo: {s['images']} images from 4 unsynchronised cameras, 8 moving markers, "
-          f"{s['seconds']:.1f} s")
-    print(f"  3D error vs. truth: mean {s['error_mm']:.2f} mm, median {s['error_median_mm']:.2f} mm;"
-          f" |Kendall tau| of the recovered order: {s['kendall_tau']:.4f}")
+    print(
+        f"demo: {s['images']} images from 4 unsynchronised cameras, 8 moving markers, "
+        f"{s['seconds']:.1f} s"
+    )
+    print(
+        f"  3D error vs. truth: mean {s['error_mm']:.2f} mm, median {s['error_median_mm']:.2f} mm;"
+        f" |Kendall tau| of the recovered order: {s['kendall_tau']:.4f}"
+    )
     print(f"  point clouds: {out / 'frames'}/  (open3d / MeshLab)")
     print(f"  trajectories: {out / 'trajectories.npz'}, {out / 'trajectories.csv'}")
     print(f"  plots:        {out / 'plots'}/  report: {out / 'report.json'}")

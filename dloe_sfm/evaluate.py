@@ -19,8 +19,9 @@ from .io import load_capture, load_result
 logger = logging.getLogger("dloe_sfm")
 
 
-def point_errors(X: np.ndarray, X_true: np.ndarray, visible: np.ndarray, *, unit: float = 1000.0
-                 ) -> dict[str, float]:
+def point_errors(
+    X: np.ndarray, X_true: np.ndarray, visible: np.ndarray, *, unit: float = 1000.0
+) -> dict[str, float]:
     """Mean Euclidean error over all (n, p), and over observed / missing ones, in mm (metres in)."""
     e = np.linalg.norm(X - X_true, axis=2) * unit
     out = {"error_mm": float(e.mean()), "error_observed_mm": float(e[visible].mean())}
@@ -29,8 +30,9 @@ def point_errors(X: np.ndarray, X_true: np.ndarray, visible: np.ndarray, *, unit
     return out
 
 
-def evaluate(capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True
-             ) -> dict[str, float]:
+def evaluate(
+    capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True
+) -> dict[str, float]:
     """Errors of X and |tau| of order against ``capture.extras`` X_true / t_true.
 
     With ``references`` also the two yardsticks on the same capture: the oracle (X-step with the
@@ -46,9 +48,12 @@ def evaluate(capture: Capture, X: np.ndarray, order: np.ndarray, *, references: 
     out = point_errors(X, X_true, vis)
     out["kendall_tau"] = kendall_tau(order, t_true)
     if references:
-        out["oracle_mm"] = point_errors(oracle_reconstruct(capture, t_true), X_true, vis)["error_mm"]
-        out["pseudo_triangulation_mm"] = point_errors(initialise(capture, Options()), X_true,
-                                                      vis)["error_mm"]
+        out["oracle_mm"] = point_errors(oracle_reconstruct(capture, t_true), X_true, vis)[
+            "error_mm"
+        ]
+        out["pseudo_triangulation_mm"] = point_errors(initialise(capture, Options()), X_true, vis)[
+            "error_mm"
+        ]
     return out
 
 
@@ -65,8 +70,12 @@ def main(result: Path, capture: Path, *, references: bool = True, out: Path | No
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("result", type=Path, help="result.npz")
     parser.add_argument("capture", type=Path, help="capture.npz with X_true and t_true")
-    parser.add_argument("--no-references", dest="references", action="store_false",
-                        help="skip the oracle and pseudo-triangulation yardsticks")
+    parser.add_argument(
+        "--no-references",
+        dest="references",
+        action="store_false",
+        help="skip the oracle and pseudo-triangulation yardsticks",
+    )
     parser.add_argument("--json", dest="out", type=Path, help="also write the scores as JSON")
 
 

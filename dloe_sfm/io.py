@@ -26,7 +26,9 @@ def atomic_path(path: Path | str) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent
+    )
     os.close(fd)
     os.unlink(tmp)
     tmp = Path(tmp)
@@ -94,8 +96,12 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
     return {
         "X": result.X,
         "order": result.order.astype(np.int64),
-        "A_data": A.data, "A_indices": A.indices.astype(np.int64), "A_indptr": A.indptr.astype(np.int64),
-        "W_data": W.data, "W_indices": W.indices.astype(np.int64), "W_indptr": W.indptr.astype(np.int64),
+        "A_data": A.data,
+        "A_indices": A.indices.astype(np.int64),
+        "A_indptr": A.indptr.astype(np.int64),
+        "W_data": W.data,
+        "W_indices": W.indices.astype(np.int64),
+        "W_indptr": W.indptr.astype(np.int64),
         "D": result.D,
         "events": result.events.astype(np.int64),
         "embedding": result.embedding,
@@ -113,7 +119,9 @@ def load_result(path: Path | str) -> dict[str, np.ndarray]:
     """Read a ``result.npz`` into a dict; ``A`` (and ``W`` when present) as CSR matrices."""
     path = Path(path)
     with _open_npz(path) as data:
-        missing = [k for k in ("X", "order", "A_data", "A_indices", "A_indptr") if k not in data.files]
+        missing = [
+            k for k in ("X", "order", "A_data", "A_indices", "A_indptr") if k not in data.files
+        ]
         if missing:
             raise InputError(f"{path}: not a result file, missing key(s) {', '.join(missing)}")
         out = {k: data[k] for k in data.files}

@@ -18,8 +18,9 @@ def main(mocap: Path, out: Path, settings: SimulationSettings | None = None) -> 
     seq = load_mocap(mocap)
     capture = simulate(seq, settings)
     save_capture(out, capture)
-    logger.info("%s: %d images x %d points from %s", out, capture.num_images, capture.num_points,
-                seq.name)
+    logger.info(
+        "%s: %d images x %d points from %s", out, capture.num_images, capture.num_points, seq.name
+    )
     return Path(out)
 
 
@@ -30,12 +31,19 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     for f in fields(SimulationSettings):
         value = getattr(defaults, f.name)
         kind = int if f.name in ("num_streams", "image_size", "seed") else float
-        parser.add_argument(f"--{f.name.replace('_', '-')}", dest=f.name, type=kind, default=value,
-                            help=f"default: {value}")
+        parser.add_argument(
+            f"--{f.name.replace('_', '-')}",
+            dest=f.name,
+            type=kind,
+            default=value,
+            help=f"default: {value}",
+        )
 
 
 def run(args: argparse.Namespace) -> int:
-    settings = SimulationSettings(**{f.name: getattr(args, f.name) for f in fields(SimulationSettings)})
+    settings = SimulationSettings(
+        **{f.name: getattr(args, f.name) for f in fields(SimulationSettings)}
+    )
     main(args.mocap, args.out, settings)
     return 0
 

@@ -14,8 +14,15 @@ from .io import load_capture, save_result
 logger = logging.getLogger("dloe_sfm")
 
 
-def main(capture: Path, out: Path, *, config: Path | None = None, overrides: list[str] | None = None,
-         options: Options | None = None, overwrite: bool = True) -> Path:
+def main(
+    capture: Path,
+    out: Path,
+    *,
+    config: Path | None = None,
+    overrides: list[str] | None = None,
+    options: Options | None = None,
+    overwrite: bool = True,
+) -> Path:
     """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns ``out``."""
     out = Path(out)
     if out.exists() and not overwrite:
@@ -23,12 +30,23 @@ def main(capture: Path, out: Path, *, config: Path | None = None, overrides: lis
         return out
     options = load_options(config, overrides, base=options)
     cap = load_capture(capture)
-    logger.info("solving %s: %d images, %d points, %d streams", capture, cap.num_images,
-                cap.num_points, len(set(cap.stream_ids.tolist())))
+    logger.info(
+        "solving %s: %d images, %d points, %d streams",
+        capture,
+        cap.num_images,
+        cap.num_points,
+        len(set(cap.stream_ids.tolist())),
+    )
     result = reconstruct(cap, options)
     save_result(out, result)
-    logger.info("%s: %s after %d iterations, %.2f s, %d event(s)", out, result.message, result.nit,
-                result.seconds, int(result.events.max()) + 1)
+    logger.info(
+        "%s: %s after %d iterations, %.2f s, %d event(s)",
+        out,
+        result.message,
+        result.nit,
+        result.seconds,
+        int(result.events.max()) + 1,
+    )
     return out
 
 
@@ -36,8 +54,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, help="capture.npz (INTERFACES.md section 1)")
     parser.add_argument("--out", type=Path, required=True, help="result.npz to write")
     parser.add_argument("--config", type=Path, help="TOML file of solver options")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one solver option (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one solver option (repeatable)",
+    )
     parser.add_argument("--progress", action="store_true", help="show a progress bar")
 
 

@@ -13,15 +13,28 @@ from dloe_sfm.io import load_capture, load_result, save_npz
 
 
 def dloe(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "dloe_sfm", *map(str, args)], capture_output=True,
-                          text=True, cwd=cwd, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "dloe_sfm", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
 
 
 @pytest.fixture(scope="module")
 def capture_file(tmp_path_factory, assets_dir):
     out = tmp_path_factory.mktemp("cli") / "capture.npz"
-    r = dloe("simulate", assets_dir / "mocap" / "jumping_1.npz", "--out", out, "--duration", "1.0",
-             "--seed", "3")
+    r = dloe(
+        "simulate",
+        assets_dir / "mocap" / "jumping_1.npz",
+        "--out",
+        out,
+        "--duration",
+        "1.0",
+        "--seed",
+        "3",
+    )
     assert r.returncode == 0, r.stderr
     return out
 
@@ -75,15 +88,18 @@ def blind_image(x):
     return x
 
 
-@pytest.mark.parametrize(("changes", "message"), [
-    ({"K": None}, "missing key(s) 'K'"),
-    ({"x": lambda x: x[:, :, :1]}, "field 'x' must have shape (N, P, 2)"),
-    ({"R": lambda R: R[:-1]}, "field 'R' must have shape"),
-    ({"C": nan_camera}, "field 'C' is not finite for image 3"),
-    ({"stream": lambda s: np.zeros_like(s)}, "one stream"),
-    ({"x": blind_image}, "image 5 ('cam0/00005') observes no point"),
-    ({"x": lambda x: np.where(np.isnan(x), x, np.inf)}, "infinite"),
-])
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"K": None}, "missing key(s) 'K'"),
+        ({"x": lambda x: x[:, :, :1]}, "field 'x' must have shape (N, P, 2)"),
+        ({"R": lambda R: R[:-1]}, "field 'R' must have shape"),
+        ({"C": nan_camera}, "field 'C' is not finite for image 3"),
+        ({"stream": lambda s: np.zeros_like(s)}, "one stream"),
+        ({"x": blind_image}, "image 5 ('cam0/00005') observes no point"),
+        ({"x": lambda x: np.where(np.isnan(x), x, np.inf)}, "infinite"),
+    ],
+)
 def test_bad_captures_exit_2_and_write_nothing(capture_file, tmp_path, changes, message):
     bad = corrupt(capture_file, tmp_path / "bad.npz", **changes)
     out = tmp_path / "result.npz"
@@ -120,6 +136,7 @@ def test_every_stage_has_help():
     for stage in ("solve", "reconstruct", "simulate", "evaluate", "demo", "benchmark"):
         r = dloe(stage, "--help")
         assert r.returncode == 0 and "usage" in r.stdout, (stage, r.stderr)
-    r = subprocess.run([sys.executable, "-m", "dloe_sfm.solve", "--help"], capture_output=True,
-                       text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "dloe_sfm.solve", "--help"], capture_output=True, text=True
+    )
     assert r.returncode == 0 and "python -m dloe_sfm.solve" in r.stdout

@@ -38,8 +38,18 @@ def osqp_simplex(H, g):
     k = g.size
     A = sp.csc_matrix(np.vstack([np.ones((1, k)), np.eye(k)]))
     solver = osqp.OSQP()
-    solver.setup(sp.csc_matrix(H), g, A, np.r_[1.0, np.zeros(k)], np.r_[1.0, np.full(k, np.inf)],
-                 verbose=False, eps_abs=1e-12, eps_rel=1e-12, max_iter=200000, polishing=True)
+    solver.setup(
+        sp.csc_matrix(H),
+        g,
+        A,
+        np.r_[1.0, np.zeros(k)],
+        np.r_[1.0, np.full(k, np.inf)],
+        verbose=False,
+        eps_abs=1e-12,
+        eps_rel=1e-12,
+        max_iter=200000,
+        polishing=True,
+    )
     return solver.solve(raise_error=True).x
 
 
@@ -71,8 +81,15 @@ def small_capture(rng, n_per_stream=12, streams=3, p=6, motion=0.02):
     t = frame + stream / streams
     X = base[None] + t[:, None, None] * vel[None]
     x = project(X, K1[stream], R1[stream], C1[stream])
-    cap = Capture(x=x, K=K1[stream], R=R1[stream], C=C1[stream], stream=stream, frame=frame,
-                  extras={"X_true": X, "t_true": t})
+    cap = Capture(
+        x=x,
+        K=K1[stream],
+        R=R1[stream],
+        C=C1[stream],
+        stream=stream,
+        frame=frame,
+        extras={"X_true": X, "t_true": t},
+    )
     return cap.validate()
 
 
@@ -94,7 +111,10 @@ def test_w_step_rows_match_osqp(rng):
         target = Xf[i] - a * np.asarray(prob.chain[i] @ Xf).ravel()
         E = target[:, None] - (1 - a) * Xf[c].T
         coh = ((r0[i] * r0[c]).sum(axis=2) ** 2).sum(axis=1)
-        H = 2 * (E.T @ E + np.diag(lam3 * (1 - a) ** 2 * coh + ridge + 1e-12 * np.trace(E.T @ E) / c.size))
+        H = 2 * (
+            E.T @ E
+            + np.diag(lam3 * (1 - a) ** 2 * coh + ridge + 1e-12 * np.trace(E.T @ E) / c.size)
+        )
         g = lam1 / D[i] * (1 - a) * ((Xf[i] - Xf[c]) ** 2).sum(axis=1)
         ref = osqp_simplex(H, g)
         got = W_var[i].toarray().ravel()[c]
@@ -114,10 +134,18 @@ def test_d_step_matches_scipy(rng):
     lam1, lam3, floor = 0.3, 1e-3, 0.5
     d = d_step(X, W, prob, lambda1=lam1, lambda3=lam3, floor=floor)
     s, t, rho = row_terms(X, W, prob, lambda3=lam3)
-    f = lambda v: float((v ** 2 * (s + lam3 * rho) + lam1 * v * t).sum())
-    ref = minimize(f, np.ones(n), method="SLSQP", bounds=[(floor, None)] * n,
-                   constraints=[{"type": "eq", "fun": lambda v: v.sum() - n}],
-                   options={"ftol": 1e-15, "maxiter": 1000})
+
+    def f(v):
+        return float((v**2 * (s + lam3 * rho) + lam1 * v * t).sum())
+
+    ref = minimize(
+        f,
+        np.ones(n),
+        method="SLSQP",
+        bounds=[(floor, None)] * n,
+        constraints=[{"type": "eq", "fun": lambda v: v.sum() - n}],
+        options={"ftol": 1e-15, "maxiter": 1000},
+    )
     assert abs(d.sum() - n) < 1e-9 and d.min() >= floor - 1e-12
     assert f(d) <= ref.fun + 1e-9 * abs(ref.fun)
     assert np.abs(d - ref.x).max() < 1e-4
@@ -134,7 +162,10 @@ def test_x_step_matches_dense_least_squares(rng, lambda2):
     W = w_step(X0, np.ones(n), cand, prob, lambda1=0.0, lambda3=0.0, ridge=1e-6)
     D, lam1 = rng.uniform(0.5, 1.5, n), 0.05
     X = x_step(W, D, prob, lambda1=lam1, lambda2=lambda2, X_prev=X0)
-    cost = lambda Y: total_cost(Y, W, D, prob, lambda1=lam1, lambda2=lambda2, lambda3=0.0)["total"]
+
+    def cost(Y):
+        return total_cost(Y, W, D, prob, lambda1=lam1, lambda2=lambda2, lambda3=0.0)["total"]
+
     # dense reference: minimise the same quadratic over a generic parametrisation
     Q = smoothness_matrix(W, D, lam1).toarray()
     vis = prob.visible
@@ -145,9 +176,9 @@ def test_x_step_matches_dense_least_squares(rng, lambda2):
             for i in range(n):
                 if vis[i, j]:
                     col = np.zeros(3 * n)
-                    col[3 * i: 3 * i + 3] = r0[i, j]
+                    col[3 * i : 3 * i + 3] = r0[i, j]
                     cols.append(col)
-                    c[3 * i: 3 * i + 3] = prob.C[i]
+                    c[3 * i : 3 * i + 3] = prob.C[i]
                 else:
                     for k in range(3):
                         col = np.zeros(3 * n)
@@ -161,8 +192,8 @@ def test_x_step_matches_dense_least_squares(rng, lambda2):
         if not np.isinf(lambda2):
             for i in range(n):
                 P = lambda2 * prob.weights[i, j] * (np.eye(3) - np.outer(r0[i, j], r0[i, j]))
-                H[3 * i:3 * i + 3, 3 * i:3 * i + 3] += P
-                g[3 * i:3 * i + 3] -= P @ prob.C[i]
+                H[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] += P
+                g[3 * i : 3 * i + 3] -= P @ prob.C[i]
         z = np.linalg.lstsq(H, -g, rcond=None)[0]
         ref = (c + B @ z).reshape(n, 3)
         assert np.abs(ref - X[:, j]).max() < 1e-6 * (1 + np.abs(ref).max())
@@ -223,7 +254,10 @@ def test_monotone_assignment_respects_order(rng):
 
 def test_dtw_positions_on_a_shared_curve():
     s = np.linspace(0, 1, 40)
-    curve = lambda u: np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
+
+    def curve(u):
+        return np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
+
     B = curve(s)
     A = curve(s[:-1] + 0.5 / 39)  # interleaved samples of the same curve
     pos = dtw_positions(A, B)
@@ -274,8 +308,12 @@ def walking_capture(assets_dir, **kw):
 
 def test_cost_decreases_monotonically(assets_dir):
     cap = walking_capture(assets_dir)
-    r = reconstruct(cap, Options(omega=1.0, spectral_prior=False, max_iterations=15,
-                                 tolerance=0.0, fixed_degree=False))
+    r = reconstruct(
+        cap,
+        Options(
+            omega=1.0, spectral_prior=False, max_iterations=15, tolerance=0.0, fixed_degree=False
+        ),
+    )
     c = r.cost_history
     assert c.size == 15
     assert (np.diff(c) <= 1e-12 * c[0]).all()

@@ -81,10 +81,14 @@ class Capture:
             raise InputError(f"{source}: field 'x' must have shape (N, P, 2), got {x.shape}")
         n, p = x.shape[:2]
         if n < 2 or p < 1:
-            raise InputError(f"{source}: field 'x' needs at least 2 images and 1 point, got {x.shape}")
+            raise InputError(
+                f"{source}: field 'x' needs at least 2 images and 1 point, got {x.shape}"
+            )
         for name, arr, shape in (("K", K, (n, 3, 3)), ("R", R, (n, 3, 3)), ("C", C, (n, 3))):
             if arr.shape != shape:
-                raise InputError(f"{source}: field '{name}' must have shape {shape}, got {arr.shape}")
+                raise InputError(
+                    f"{source}: field '{name}' must have shape {shape}, got {arr.shape}"
+                )
             bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1)
             if bad.any():
                 raise InputError(
@@ -92,20 +96,34 @@ class Capture:
                 )
         if np.isinf(x).any():
             i = int(np.argwhere(np.isinf(x))[0, 0])
-            raise InputError(f"{source}: field 'x' has an infinite coordinate in image {self._name(i)}")
+            raise InputError(
+                f"{source}: field 'x' has an infinite coordinate in image {self._name(i)}"
+            )
         det = np.linalg.det(R)
         ortho = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
         bad = (np.abs(det - 1) > 1e-6) | (ortho > 1e-6)
         if bad.any():
-            raise InputError(f"{source}: field 'R' is not a rotation for image {self._name(np.argmax(bad))}")
+            raise InputError(
+                f"{source}: field 'R' is not a rotation for image {self._name(np.argmax(bad))}"
+            )
         if (np.abs(np.linalg.det(K)) < 1e-12).any():
-            raise InputError(f"{source}: field 'K' is singular for image {self._name(np.argmax(np.abs(np.linalg.det(K)) < 1e-12))}")
-        for name, arr in (("stream", self.stream), ("frame", self.frame), ("image_names", self.image_names)):
+            raise InputError(
+                f"{source}: field 'K' is singular for image "
+                f"{self._name(np.argmax(np.abs(np.linalg.det(K)) < 1e-12))}"
+            )
+        for name, arr in (
+            ("stream", self.stream),
+            ("frame", self.frame),
+            ("image_names", self.image_names),
+        ):
             if arr.shape != (n,):
-                raise InputError(f"{source}: field '{name}' must have shape ({n},), got {arr.shape}")
+                raise InputError(
+                    f"{source}: field '{name}' must have shape ({n},), got {arr.shape}"
+                )
         if self.confidence is not None and self.confidence.shape != (n, p):
             raise InputError(
-                f"{source}: field 'confidence' must have shape ({n}, {p}), got {self.confidence.shape}"
+                f"{source}: field 'confidence' must have shape ({n}, {p}), "
+                f"got {self.confidence.shape}"
             )
         visible = self.visible
         empty = ~visible.any(axis=1)
@@ -156,19 +174,26 @@ class Capture:
         return ids
 
     def rays(self) -> np.ndarray:
-        """(N, P, 3) unit viewing rays in world coordinates, ``R^T K^-1 [x; 1]``; NaN = unobserved."""
+        """(N, P, 3) unit world viewing rays ``R^T K^-1 [x; 1]``; NaN = unobserved."""
         return pixel_rays(self.x, self.K, self.R)
 
     def subset(self, idx: np.ndarray) -> Capture:
         """The capture restricted to images ``idx`` (same points)."""
         idx = np.asarray(idx)
         return Capture(
-            x=self.x[idx], K=self.K[idx], R=self.R[idx], C=self.C[idx],
-            stream=self.stream[idx], frame=self.frame[idx],
+            x=self.x[idx],
+            K=self.K[idx],
+            R=self.R[idx],
+            C=self.C[idx],
+            stream=self.stream[idx],
+            frame=self.frame[idx],
             confidence=None if self.confidence is None else self.confidence[idx],
             image_names=self.image_names[idx],
-            extras={k: v[idx] for k, v in self.extras.items()
-                    if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == self.num_images},
+            extras={
+                k: v[idx]
+                for k, v in self.extras.items()
+                if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == self.num_images
+            },
         )
 
 

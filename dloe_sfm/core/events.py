@@ -13,7 +13,7 @@ def segment_events(A: sp.spmatrix, *, min_size: int = 2) -> np.ndarray:
     Labels are numbered by the component's first image; components smaller than ``min_size`` are
     merged into the component they link to most (or the largest one if isolated).
     """
-    n = A.shape[0]
+    A.shape[0]
     G = sp.csr_matrix(abs(A) + abs(A).T)
     _, labels = connected_components(G, directed=False)
     sizes = np.bincount(labels)

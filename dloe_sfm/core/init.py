@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def closest_approach(C1: np.ndarray, r1: np.ndarray, C2: np.ndarray, r2: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def closest_approach(
+    C1: np.ndarray, r1: np.ndarray, C2: np.ndarray, r2: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest points of two families of rays ``C1 + s r1`` and ``C2 + t r2`` (broadcasting).
 
     C1, r1, C2, r2 (..., 3), rays unit. Returns depths s, t (...) and the gap (...) between the
@@ -30,8 +31,14 @@ def _pair_scores(rays, C, streams, lo, hi, cos_max):
     r0 = np.nan_to_num(rays)
     s, t, gap = closest_approach(C[lo:hi, None, None], r0[lo:hi, None], C[None, :, None], r0[None])
     cosang = np.abs(np.einsum("apk,bpk->abp", r0[lo:hi], r0))
-    ok = (vis[lo:hi, None] & vis[None] & (cosang < cos_max) & (s > 0) & (t > 0)
-          & (streams[lo:hi, None, None] != streams[None, :, None]))
+    ok = (
+        vis[lo:hi, None]
+        & vis[None]
+        & (cosang < cos_max)
+        & (s > 0)
+        & (t > 0)
+        & (streams[lo:hi, None, None] != streams[None, :, None])
+    )
     count = ok.sum(axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = np.where(ok, gap, 0.0).sum(axis=2) / count
@@ -40,9 +47,15 @@ def _pair_scores(rays, C, streams, lo, hi, cos_max):
     return s, ok, score
 
 
-def pseudo_triangulate(rays: np.ndarray, C: np.ndarray, streams: np.ndarray,
-                       frames: np.ndarray | None = None, *, min_angle: float = 15.0,
-                       chunk: int = 64) -> tuple[np.ndarray, np.ndarray]:
+def pseudo_triangulate(
+    rays: np.ndarray,
+    C: np.ndarray,
+    streams: np.ndarray,
+    frames: np.ndarray | None = None,
+    *,
+    min_angle: float = 15.0,
+    chunk: int = 64,
+) -> tuple[np.ndarray, np.ndarray]:
     """Two-view pseudo-triangulation of every image with its most convergent partner.
 
     For image n, every image m of another stream is scored by the mean closest-approach gap of the

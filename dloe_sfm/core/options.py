@@ -64,7 +64,7 @@ class Options:
     spectral_prior: bool = True
     """Use ``(f_i - f_j)^2`` of the sequencing embedding in T during the W- and D-steps."""
     omega: float = 1.9
-    """Over-relaxation of the X update (1 = plain alternation); steps that raise the cost are undone."""
+    """Over-relaxation of the X update (1 = plain alternation); cost-raising steps are undone."""
     resequence_every: int = 10
     """Recompute the sequencing embedding of the spectral prior every this many iterations."""
     distance: Distance = Distance.ARC
@@ -101,7 +101,10 @@ class Options:
 
     def to_dict(self) -> dict:
         return {
-            f.name: (getattr(self, f.name).value if isinstance(getattr(self, f.name), Enum)
-                     else getattr(self, f.name))
+            f.name: (
+                getattr(self, f.name).value
+                if isinstance(getattr(self, f.name), Enum)
+                else getattr(self, f.name)
+            )
             for f in fields(self)
         }

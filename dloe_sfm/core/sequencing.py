@@ -62,15 +62,15 @@ def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     perpendicular on that segment. Returns (m,) positions in B's arc length.
     """
     seg = np.diff(B, axis=0)  # (q-1, d)
-    seg_len2 = (seg ** 2).sum(axis=1)
+    seg_len2 = (seg**2).sum(axis=1)
     start = B[:-1]
     # |a - b_k - t s_k|^2 from matrix products, never an (m, q, d) temporary
     a_dot_s = A @ seg.T - (start * seg).sum(axis=1)  # (a - b_k) . s_k
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.clip(a_dot_s / seg_len2, 0.0, 1.0)
     t = np.nan_to_num(t)
-    d2 = (A ** 2).sum(axis=1)[:, None] + (start ** 2).sum(axis=1)[None] - 2 * A @ start.T
-    cost = np.sqrt(np.maximum(d2 - 2 * t * a_dot_s + t ** 2 * seg_len2, 0.0))  # (m, q-1)
+    d2 = (A**2).sum(axis=1)[:, None] + (start**2).sum(axis=1)[None] - 2 * A @ start.T
+    cost = np.sqrt(np.maximum(d2 - 2 * t * a_dot_s + t**2 * seg_len2, 0.0))  # (m, q-1)
     path = monotone_assignment(cost)
     m = A.shape[0]
     s = arc_length(B)
@@ -141,7 +141,7 @@ def affine_time(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.nd
     if len(lines) < 2:
         return None
     k = len(lines)
-    log_rate_rows, offset_rows = [], []
+    log_rate_rows, _offset_rows = [], []
     place = {}  # (line c, image i) -> fractional frame of c at which i sits
     arcs = [arc_length(F[idx]) for idx in lines]
     for c, idx in enumerate(lines):
@@ -188,21 +188,26 @@ def affine_time(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.nd
 def euclidean_distance(X: np.ndarray) -> np.ndarray:
     """|X_i - X_j| between whole shapes, (N, N)."""
     F = X.reshape(X.shape[0], -1)
-    sq = (F ** 2).sum(axis=1)
+    sq = (F**2).sum(axis=1)
     d2 = np.maximum(sq[:, None] + sq[None, :] - 2 * F @ F.T, 0.0)
     np.fill_diagonal(d2, 0.0)
     return np.sqrt(d2)
 
 
-def distance_matrix(X: np.ndarray, streams: np.ndarray, frames: np.ndarray,
-                    kind: Distance | str = Distance.ARC) -> np.ndarray:
-    return arc_distance(X, streams, frames) if Distance(kind) is Distance.ARC else euclidean_distance(X)
+def distance_matrix(
+    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, kind: Distance | str = Distance.ARC
+) -> np.ndarray:
+    return (
+        arc_distance(X, streams, frames)
+        if Distance(kind) is Distance.ARC
+        else euclidean_distance(X)
+    )
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:
     """Classical MDS to one dimension: the leading eigenvector of -1/2 J Z^2 J, in Z's units."""
     n = Z.shape[0]
-    B = Z ** 2
+    B = Z**2
     B = -0.5 * (B - B.mean(axis=0, keepdims=True) - B.mean(axis=1, keepdims=True) + B.mean())
     val, vec = _top_eigenpairs(B, 1)
     return vec[:, 0] * np.sqrt(max(val[0], 0.0)) if n > 1 else np.zeros(n)
@@ -222,8 +227,9 @@ def spectral_embedding(Z: np.ndarray) -> np.ndarray:
         return sla.eigh(L, subset_by_index=[1, 1])[1][:, 0]
     # smallest eigenvector orthogonal to the constant one (L's null vector), Jacobi-preconditioned
     x0 = np.linspace(-1.0, 1.0, n)[:, None]
-    _, vec = spla.lobpcg(L, x0, Y=np.ones((n, 1)), M=sp.diags(1.0 / deg), largest=False,
-                         tol=1e-9, maxiter=2000)
+    _, vec = spla.lobpcg(
+        L, x0, Y=np.ones((n, 1)), M=sp.diags(1.0 / deg), largest=False, tol=1e-9, maxiter=2000
+    )
     return vec[:, 0]
 
 
@@ -289,7 +295,7 @@ def _two_opt(Z: np.ndarray, path: np.ndarray, max_passes: int) -> np.ndarray:
         if g[best] <= 1e-12 * max(edge.sum(), 1e-300):
             break
         i, j = i_idx[best], j_idx[best] + 1
-        path = np.concatenate([P[: i + 1], P[i + 1: j + 1][::-1], P[j + 1:]])
+        path = np.concatenate([P[: i + 1], P[i + 1 : j + 1][::-1], P[j + 1 :]])
     return path
 
 

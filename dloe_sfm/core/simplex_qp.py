@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def solve_simplex_qp(H: np.ndarray, g: np.ndarray, mask: np.ndarray | None = None, *,
-                     max_iter: int | None = None, tol: float = 1e-12) -> np.ndarray:
+def solve_simplex_qp(
+    H: np.ndarray,
+    g: np.ndarray,
+    mask: np.ndarray | None = None,
+    *,
+    max_iter: int | None = None,
+    tol: float = 1e-12,
+) -> np.ndarray:
     """Minimise ``1/2 w^T H w + g^T w`` s.t. ``w >= 0``, ``sum(w) = 1`` for a batch of problems.
 
     A primal active-set method run on all problems at once (each iteration one batched KKT

@@ -56,16 +56,24 @@ def build_problem(capture: Capture, options: Options, origin: np.ndarray, scale:
     view /= np.linalg.norm(view, axis=1, keepdims=True)
     chain = chain_matrix(streams, capture.frame)
     has_chain = np.asarray(chain.sum(axis=1)).ravel() > 0
-    return Problem(rays=rays, C=(capture.C - origin) / scale, weights=weights, streams=streams,
-                   view_dirs=view, chain=chain, prior=np.where(has_chain, options.prior_weight, 0.0))
+    return Problem(
+        rays=rays,
+        C=(capture.C - origin) / scale,
+        weights=weights,
+        streams=streams,
+        view_dirs=view,
+        chain=chain,
+        prior=np.where(has_chain, options.prior_weight, 0.0),
+    )
 
 
 def initialise(capture: Capture, options: Options) -> np.ndarray:
     """Pseudo-triangulated (N, P, 3) shapes in world units (unobserved points interpolated)."""
     rays = capture.rays()
     rays[capture.weights <= 0] = np.nan
-    depths, _ = pseudo_triangulate(rays, capture.C, capture.stream_ids, capture.frame,
-                                   min_angle=options.min_ray_angle)
+    depths, _ = pseudo_triangulate(
+        rays, capture.C, capture.stream_ids, capture.frame, min_angle=options.min_ray_angle
+    )
     X0 = capture.C[:, None, :] + depths[..., None] * rays
     return fill_missing(X0, capture.stream_ids, capture.frame)
 
@@ -77,8 +85,9 @@ def _degrees(f: np.ndarray, prob: Problem, options: Options) -> np.ndarray:
     return D
 
 
-def _sequence(X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options, *,
-              final: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _sequence(
+    X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options, *, final: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
     With the ``affine`` embedding and video streams, both come from the streams' affine clocks
@@ -143,17 +152,35 @@ def _solve_events(capture: Capture, options: Options, joint: Result) -> Result:
         avals.append(A.data)
         wvals.append((idx[W.row], idx[W.col], W.data))
         order.append(sub_order)
-    A = sp.csr_matrix((np.concatenate(avals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n))
-    W = sp.csr_matrix((np.concatenate([w[2] for w in wvals]),
-                       (np.concatenate([w[0] for w in wvals]), np.concatenate([w[1] for w in wvals]))),
-                      shape=(n, n))
+    A = sp.csr_matrix(
+        (np.concatenate(avals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
+    )
+    W = sp.csr_matrix(
+        (
+            np.concatenate([w[2] for w in wvals]),
+            (np.concatenate([w[0] for w in wvals]), np.concatenate([w[1] for w in wvals])),
+        ),
+        shape=(n, n),
+    )
     timings = dict(joint.timings)
     timings["events"] = time.perf_counter() - start
-    return Result(X=X, order=np.concatenate(order), A=A, W=W, D=D, events=joint.events,
-                  embedding=embedding, cost_history=joint.cost_history,
-                  change_history=joint.change_history, nit=joint.nit, success=joint.success,
-                  message=joint.message, seconds=joint.seconds + timings["events"], timings=timings,
-                  scale=joint.scale)
+    return Result(
+        X=X,
+        order=np.concatenate(order),
+        A=A,
+        W=W,
+        D=D,
+        events=joint.events,
+        embedding=embedding,
+        cost_history=joint.cost_history,
+        change_history=joint.change_history,
+        nit=joint.nit,
+        success=joint.success,
+        message=joint.message,
+        seconds=joint.seconds + timings["events"],
+        timings=timings,
+        scale=joint.scale,
+    )
 
 
 @dataclass
@@ -170,8 +197,16 @@ class _State:
     best: tuple | None = None
 
 
-def _alternate(st: _State, prob: Problem, frames: np.ndarray, options: Options, lambda2: float,
-               budget: int, timings: dict, bar) -> tuple[bool, str]:
+def _alternate(
+    st: _State,
+    prob: Problem,
+    frames: np.ndarray,
+    options: Options,
+    lambda2: float,
+    budget: int,
+    timings: dict,
+    bar,
+) -> tuple[bool, str]:
     """Up to ``budget`` W -> D -> X sweeps at ray weight ``lambda2``; (converged, message)."""
     n = st.X.shape[0]
     lam = {"lambda1": options.lambda1, "lambda2": lambda2, "lambda3": options.lambda3}
@@ -181,15 +216,31 @@ def _alternate(st: _State, prob: Problem, frames: np.ndarray, options: Options, 
         t0 = time.perf_counter()
         feats = st.prior_f[:, None] if options.spectral_prior else st.X.reshape(n, -1)
         prior = st.prior_f if options.spectral_prior else None
-        cand = select_candidates(feats, prob, options.num_candidates,
-                                 min_angle=options.min_ray_angle, keep=st.W_var)
-        st.W_var = w_step(st.X, st.D, cand, prob, lambda1=options.lambda1,
-                          lambda3=options.lambda3, ridge=options.ridge, embedding=prior)
+        cand = select_candidates(
+            feats, prob, options.num_candidates, min_angle=options.min_ray_angle, keep=st.W_var
+        )
+        st.W_var = w_step(
+            st.X,
+            st.D,
+            cand,
+            prob,
+            lambda1=options.lambda1,
+            lambda3=options.lambda3,
+            ridge=options.ridge,
+            embedding=prior,
+        )
         W = full_weights(st.W_var, prob)
         t1 = time.perf_counter()
         if not options.fixed_degree:
-            st.D = d_step(st.X, W, prob, lambda1=options.lambda1, lambda3=options.lambda3,
-                          floor=options.degree_floor, embedding=prior)
+            st.D = d_step(
+                st.X,
+                W,
+                prob,
+                lambda1=options.lambda1,
+                lambda3=options.lambda3,
+                floor=options.degree_floor,
+                embedding=prior,
+            )
             st.D[temporal_ends(st.f, prob.streams)] = options.end_degree
         t2 = time.perf_counter()
         X_new = x_step(W, st.D, prob, lambda1=options.lambda1, lambda2=lambda2, X_prev=st.X)
@@ -214,10 +265,16 @@ def _alternate(st: _State, prob: Problem, frames: np.ndarray, options: Options, 
             st.X, st.W_var, st.D = st.best[1].copy(), st.best[2], st.best[4].copy()
         if change < options.tolerance:
             return True, f"converged: rms change {change:.2e} < {options.tolerance:.0e}"
-        recent = st.costs[-(it + 1):]
-        if len(recent) > window and recent[-window - 1] - min(recent[-window:]) <= \
-                options.cost_tolerance * recent[-window - 1]:
-            return True, f"converged: cost fell by < {options.cost_tolerance:.0e} in {window} sweeps"
+        recent = st.costs[-(it + 1) :]
+        if (
+            len(recent) > window
+            and recent[-window - 1] - min(recent[-window:])
+            <= options.cost_tolerance * recent[-window - 1]
+        ):
+            return (
+                True,
+                f"converged: cost fell by < {options.cost_tolerance:.0e} in {window} sweeps",
+            )
         if (it + 1) % window == 0:
             t0 = time.perf_counter()
             st.prior_f, st.f = _sequence(st.X, prob, frames, options)
@@ -241,30 +298,46 @@ def _solve(capture: Capture, options: Options) -> Result:
     st = _State(X=X, D=_degrees(f, prob, options), prior_f=prior_f, f=f)
     lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
     total = options.max_iterations + (options.soft_iterations if np.isfinite(lambda2) else 0)
-    with tqdm(total=total, desc="DLOE", unit="it", leave=False,
-              disable=not options.progress) as bar:
+    with tqdm(
+        total=total, desc="DLOE", unit="it", leave=False, disable=not options.progress
+    ) as bar:
         # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
         # settle W first; the soft phase then only refines
-        success, message = _alternate(st, prob, capture.frame, options, np.inf,
-                                      options.max_iterations, timings, bar)
+        success, message = _alternate(
+            st, prob, capture.frame, options, np.inf, options.max_iterations, timings, bar
+        )
         if np.isfinite(lambda2):
             st.X = st.best[1].copy()
-            success, message = _alternate(st, prob, capture.frame, options, lambda2,
-                                          options.soft_iterations, timings, bar)
+            success, message = _alternate(
+                st, prob, capture.frame, options, lambda2, options.soft_iterations, timings, bar
+            )
     _, X, _, W, D = st.best
     t0 = time.perf_counter()
     _, f = _sequence(X, prob, capture.frame, options, final=True)
     timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(D) @ W)
-    return Result(X=X * scale + origin, order=order_from_embedding(f), A=A, W=W, D=D,
-                  events=segment_events(A), embedding=f * scale,
-                  cost_history=np.array(st.costs), change_history=np.array(st.changes),
-                  nit=len(st.costs), success=success, message=message,
-                  seconds=time.perf_counter() - t_start, timings=timings, scale=scale)
+    return Result(
+        X=X * scale + origin,
+        order=order_from_embedding(f),
+        A=A,
+        W=W,
+        D=D,
+        events=segment_events(A),
+        embedding=f * scale,
+        cost_history=np.array(st.costs),
+        change_history=np.array(st.changes),
+        nit=len(st.costs),
+        success=success,
+        message=message,
+        seconds=time.perf_counter() - t_start,
+        timings=timings,
+        scale=scale,
+    )
 
 
-def oracle_reconstruct(capture: Capture, times: np.ndarray, *, lambda1: float = 0.0,
-                       lambda2: float = np.inf) -> np.ndarray:
+def oracle_reconstruct(
+    capture: Capture, times: np.ndarray, *, lambda1: float = 0.0, lambda2: float = np.inf
+) -> np.ndarray:
     """DLOE's X-step with the true temporal chain as W: the accuracy reference.
 
     Every image is linked to its temporal predecessor and successor among all images, with

@@ -89,13 +89,19 @@ def ray_coherence(rays: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.nd
     out = np.empty(rows.size)
     step = 1 << 16
     for lo in range(0, rows.size, step):
-        a, b = rows[lo:lo + step], cols[lo:lo + step]
-        out[lo:lo + step] = (np.einsum("epk,epk->ep", r[a], r[b]) ** 2).sum(axis=1)
+        a, b = rows[lo : lo + step], cols[lo : lo + step]
+        out[lo : lo + step] = (np.einsum("epk,epk->ep", r[a], r[b]) ** 2).sum(axis=1)
     return out
 
 
-def select_candidates(features: np.ndarray, prob: Problem, k: int, *, min_angle: float,
-                      keep: sp.csr_matrix | None = None) -> np.ndarray:
+def select_candidates(
+    features: np.ndarray,
+    prob: Problem,
+    k: int,
+    *,
+    min_angle: float,
+    keep: sp.csr_matrix | None = None,
+) -> np.ndarray:
     """k nearest admissible neighbours of every image in ``features`` space, (N, k') int, -1 = pad.
 
     Admissible: another stream, and viewing directions at least ``min_angle`` degrees from
@@ -192,8 +198,17 @@ def _bracket(f: np.ndarray, k: int, admissible) -> np.ndarray:
     return found
 
 
-def w_step(X: np.ndarray, D: np.ndarray, cand: np.ndarray, prob: Problem, *, lambda1: float,
-           lambda3: float, ridge: float, embedding: np.ndarray | None = None) -> sp.csr_matrix:
+def w_step(
+    X: np.ndarray,
+    D: np.ndarray,
+    cand: np.ndarray,
+    prob: Problem,
+    *,
+    lambda1: float,
+    lambda3: float,
+    ridge: float,
+    embedding: np.ndarray | None = None,
+) -> sp.csr_matrix:
     """Optimal W_var rows on their candidate sets (each row a QP on the simplex, solved exactly).
 
     Row i minimises, with W = (1 - a) W_var + a W_chain and everything else fixed:
@@ -207,7 +222,9 @@ def w_step(X: np.ndarray, D: np.ndarray, cand: np.ndarray, prob: Problem, *, lam
     mask = cand >= 0
     cc = np.where(mask, cand, 0)
     target = Xf - a[:, None] * (prob.chain @ Xf)  # X_i - a (W_chain X)_i
-    E = target[:, :, None] - (1.0 - a)[:, None, None] * np.transpose(Xf[cc], (0, 2, 1))  # (N, 3P, k)
+    E = target[:, :, None] - (1.0 - a)[:, None, None] * np.transpose(
+        Xf[cc], (0, 2, 1)
+    )  # (N, 3P, k)
     H = np.einsum("nfi,nfj->nij", E, E)
     if embedding is None:
         dist = ((Xf[:, None, :] - Xf[cc]) ** 2).sum(axis=2)
@@ -225,9 +242,15 @@ def w_step(X: np.ndarray, D: np.ndarray, cand: np.ndarray, prob: Problem, *, lam
     return sp.csr_matrix((w[keep], (np.nonzero(keep)[0], cc[keep])), shape=(n, n))
 
 
-def row_terms(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda3: float,
-              embedding: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per-image pieces of the cost as functions of D: S_i = d_i^2 s_i, T_i = d_i t_i, R_i = d_i^2 rho_i."""
+def row_terms(
+    X: np.ndarray,
+    W: sp.csr_matrix,
+    prob: Problem,
+    *,
+    lambda3: float,
+    embedding: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-image cost pieces s, t, rho: S_i = d_i^2 s_i, T_i = d_i t_i, R_i = d_i^2 rho_i."""
     n = X.shape[0]
     Xf = X.reshape(n, -1)
     s = ((Xf - W @ Xf) ** 2).sum(axis=1)
@@ -240,12 +263,20 @@ def row_terms(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda3: float,
     rho = np.zeros(n)
     if lambda3 > 0:
         coh = ray_coherence(prob.rays, coo.row, coo.col)
-        rho = np.bincount(coo.row, coo.data ** 2 * coh, minlength=n)
+        rho = np.bincount(coo.row, coo.data**2 * coh, minlength=n)
     return s, t, rho
 
 
-def d_step(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda1: float, lambda3: float,
-           floor: float, embedding: np.ndarray | None = None) -> np.ndarray:
+def d_step(
+    X: np.ndarray,
+    W: sp.csr_matrix,
+    prob: Problem,
+    *,
+    lambda1: float,
+    lambda3: float,
+    floor: float,
+    embedding: np.ndarray | None = None,
+) -> np.ndarray:
     """Optimal degrees: min sum_i d_i^2 (s_i + l3 rho_i) + l1 d_i t_i s.t. sum d = N, d >= floor.
 
     Separable with one equality constraint, solved exactly by water-filling on its multiplier:
@@ -276,7 +307,7 @@ def d_step(X: np.ndarray, W: sp.csr_matrix, prob: Problem, *, lambda1: float, la
 
 
 def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr_matrix:
-    """Q = (D (I - W))^T D (I - W) + l1 M, with M the Laplacian form of sum_ij A_ij |X_i - X_j|^2."""
+    """Q = (D (I - W))^T D (I - W) + l1 M, M the Laplacian form of sum_ij A_ij |X_i - X_j|^2."""
     n = W.shape[0]
     L = sp.diags(D) @ (sp.identity(n, format="csr") - W)
     A = sp.diags(D) @ W
@@ -285,8 +316,15 @@ def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr
     return sp.csr_matrix(L.T @ L + lambda1 * M)
 
 
-def x_step(W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float, lambda2: float,
-           X_prev: np.ndarray) -> np.ndarray:
+def x_step(
+    W: sp.csr_matrix,
+    D: np.ndarray,
+    prob: Problem,
+    *,
+    lambda1: float,
+    lambda2: float,
+    X_prev: np.ndarray,
+) -> np.ndarray:
     """Optimal X for fixed W, D: per point p a sparse linear system.
 
     With ``lambda2 = inf`` observed points are pinned to their rays, ``X_np = C_n + l_np r_np``,
@@ -317,9 +355,12 @@ def x_step(W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float, la
             rows_m = (3 * miss[:, None] + np.arange(3)).ravel()
             cols_m = (col_of[miss][:, None] + np.arange(3)).ravel()
             Bm = sp.csr_matrix(
-                (np.concatenate([vals_o, np.ones(rows_m.size)]),
-                 (np.concatenate([rows_o, rows_m]), np.concatenate([cols_o, cols_m]))),
-                shape=(3 * n, n_obs + 3 * miss.size))
+                (
+                    np.concatenate([vals_o, np.ones(rows_m.size)]),
+                    (np.concatenate([rows_o, rows_m]), np.concatenate([cols_o, cols_m])),
+                ),
+                shape=(3 * n, n_obs + 3 * miss.size),
+            )
             c = np.where(obs[:, None], prob.C, 0.0).ravel()
             H = sp.csc_matrix(Bm.T @ Q3 @ Bm)
             rhs = -(Bm.T @ (Q3 @ c))
@@ -327,15 +368,16 @@ def x_step(W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float, la
             wgt = lambda2 * prob.weights[:, j]
             rr = r0[:, j]
             P_perp = np.eye(3)[None] - rr[:, :, None] * rr[:, None, :]  # (N, 3, 3)
-            O = sp.block_diag(list(wgt[:, None, None] * P_perp), format="csr")
-            H = sp.csc_matrix(Q3 + O)
-            rhs = O @ prob.C.ravel()
+            ray_term = sp.block_diag(list(wgt[:, None, None] * P_perp), format="csr")
+            H = sp.csc_matrix(Q3 + ray_term)
+            rhs = ray_term @ prob.C.ravel()
             c = np.zeros(3 * n)
             Bm = None
         H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
         # symmetric mode + minimum degree on A^T + A: ~10x faster than SuperLU's defaults here
-        lu = spla.splu(H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                       options={"SymmetricMode": True})
+        lu = spla.splu(
+            H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
         z = lu.solve(rhs)
         X[:, j] = (c + (Bm @ z if Bm is not None else z)).reshape(n, 3)
     bad = ~np.isfinite(X)
@@ -343,17 +385,29 @@ def x_step(W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float, la
     return X
 
 
-def total_cost(X: np.ndarray, W: sp.csr_matrix, D: np.ndarray, prob: Problem, *, lambda1: float,
-               lambda2: float, lambda3: float) -> dict[str, float]:
+def total_cost(
+    X: np.ndarray,
+    W: sp.csr_matrix,
+    D: np.ndarray,
+    prob: Problem,
+    *,
+    lambda1: float,
+    lambda2: float,
+    lambda3: float,
+) -> dict[str, float]:
     """The four terms S, T, O, R (Euclidean T) and their sum, each divided by N * P."""
     n, p = X.shape[:2]
     s, t, rho = row_terms(X, W, prob, lambda3=lambda3)
-    terms = {"S": float((D ** 2 * s).sum()), "T": lambda1 * float((D * t).sum()),
-             "R": lambda3 * float((D ** 2 * rho).sum()), "O": 0.0}
+    terms = {
+        "S": float((D**2 * s).sum()),
+        "T": lambda1 * float((D * t).sum()),
+        "R": lambda3 * float((D**2 * rho).sum()),
+        "O": 0.0,
+    }
     if np.isfinite(lambda2):
         r0 = np.nan_to_num(prob.rays)
         cross = np.cross(X - prob.C[:, None, :], r0)
-        terms["O"] = lambda2 * float((prob.weights * (cross ** 2).sum(axis=2)).sum())
+        terms["O"] = lambda2 * float((prob.weights * (cross**2).sum(axis=2)).sum())
     terms = {k: v / (n * p) for k, v in terms.items()}
     terms["total"] = sum(terms.values())
     return terms

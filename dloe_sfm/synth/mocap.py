@@ -19,7 +19,7 @@ from ..errors import InputError
 
 @dataclass(kw_only=True)
 class MocapSequence:
-    """A motion: ``positions`` (T, J, 3) metres at ``fps`` Hz, skeleton ``parents`` (J,) (-1 = root)."""
+    """A motion: ``positions`` (T, J, 3) metres at ``fps`` Hz; ``parents`` (J,), -1 = root."""
 
     positions: np.ndarray
     fps: float
@@ -47,8 +47,11 @@ def load_mocap(path: Path | str) -> MocapSequence:
                 raise InputError(f"{path}: missing key '{key}'")
         positions = data["positions"].astype(np.float64)
         fps = float(data["fps"])
-        parents = data["parents"].astype(np.int64) if "parents" in data.files else \
-            np.full(positions.shape[1], -1)
+        parents = (
+            data["parents"].astype(np.int64)
+            if "parents" in data.files
+            else np.full(positions.shape[1], -1)
+        )
     step = np.linalg.norm(np.diff(positions, axis=0), axis=2).max(axis=1)
     limit = 5 * np.percentile(step, 99)
     start = 0
@@ -81,8 +84,14 @@ class SimulationSettings:
     seed: int = 0
 
 
-def ring_cameras(centre: np.ndarray, *, num: int = 4, radius: float = 3.0, focal: float = 1000.0,
-                 image_size: int = 1000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ring_cameras(
+    centre: np.ndarray,
+    *,
+    num: int = 4,
+    radius: float = 3.0,
+    focal: float = 1000.0,
+    image_size: int = 1000,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``num`` cameras on a horizontal ring (y up) looking at ``centre``.
 
     Returns K (num, 3, 3), R (num, 3, 3) world-to-camera, C (num, 3). Four cameras sit at yaw
@@ -113,7 +122,11 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     rng = np.random.default_rng(s.seed)
     pos = seq.positions
     first = int(round(s.start * seq.fps))
-    last = pos.shape[0] if s.duration is None else min(pos.shape[0], first + int(round(s.duration * seq.fps)))
+    last = (
+        pos.shape[0]
+        if s.duration is None
+        else min(pos.shape[0], first + int(round(s.duration * seq.fps)))
+    )
     if last - first < 2:
         raise InputError(f"{seq.name}: the chosen window has fewer than 2 frames")
     period = seq.fps / s.rate
@@ -122,11 +135,16 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     radius = s.radius
     if radius is None:
         radius = max(3.0, float(np.linalg.norm((window - centre)[:, [0, 2]], axis=1).max()) + 2.0)
-    K1, R1, C1 = ring_cameras(centre, num=s.num_streams, radius=radius, focal=s.focal,
-                              image_size=s.image_size)
+    K1, R1, C1 = ring_cameras(
+        centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
+    )
     times, streams, frames = [], [], []
     for k in range(s.num_streams):
-        t = first + k * period / s.num_streams + period * np.arange(int((last - 1 - first) / period) + 1)
+        t = (
+            first
+            + k * period / s.num_streams
+            + period * np.arange(int((last - 1 - first) / period) + 1)
+        )
         t = t[t <= last - 1]
         times.append(t)
         streams.append(np.full(t.size, k))
@@ -137,7 +155,7 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     if s.drop > 0:
         keep = rng.random(t_idx.size) >= s.drop
         t_idx, stream, frame = t_idx[keep], stream[keep], frame[keep]
-    # linear interpolation between mocap samples for fractional instants (rates that do not divide fps)
+    # linear interpolation between mocap samples at fractional instants (rates not dividing fps)
     lo = np.floor(t_idx).astype(int)
     hi = np.minimum(lo + 1, pos.shape[0] - 1)
     a = (t_idx - lo)[:, None, None]
@@ -151,9 +169,20 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
         gone[np.arange(n), rng.integers(0, p, n)] = False  # every image keeps a point
         gone[rng.integers(0, n, p), np.arange(p)] = False  # every point stays seen somewhere
         x[gone] = np.nan
-    names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame)])
+    names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=False)])
     return Capture(
-        x=x, K=K, R=R, C=C, stream=stream, frame=frame, image_names=names,
-        extras={"X_true": X_true, "t_true": t_idx / seq.fps, "x_clean": x_clean,
-                "parents": seq.parents, "settings": np.array(str(asdict(s)))},
+        x=x,
+        K=K,
+        R=R,
+        C=C,
+        stream=stream,
+        frame=frame,
+        image_names=names,
+        extras={
+            "X_true": X_true,
+            "t_true": t_idx / seq.fps,
+            "x_clean": x_clean,
+            "parents": seq.parents,
+            "settings": np.array(str(asdict(s))),
+        },
     )

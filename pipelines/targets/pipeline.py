@@ -24,8 +24,15 @@ from dloe_sfm.core.solver import initialise, oracle_reconstruct, reconstruct
 from dloe_sfm.evaluate import point_errors
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
-MOTIONS = ["walking_1", "running_1", "jumping_1", "soccer_1", "basketball_1",
-           "basketball_signal_1", "directing_traffic_1"]
+MOTIONS = [
+    "walking_1",
+    "running_1",
+    "jumping_1",
+    "soccer_1",
+    "basketball_1",
+    "basketball_signal_1",
+    "directing_traffic_1",
+]
 
 
 def target(setting: str, e: float, oracle: float, init: float, tau: float) -> bool:
@@ -45,8 +52,9 @@ SETTINGS = {
 }
 
 
-def run(data: Path, out: Path, motions: list[str], settings: list[str], duration: float,
-        seed: int) -> list[dict]:
+def run(
+    data: Path, out: Path, motions: list[str], settings: list[str], duration: float, seed: int
+) -> list[dict]:
     rows = []
     for name in settings:
         kw = SETTINGS[name]
@@ -60,26 +68,45 @@ def run(data: Path, out: Path, motions: list[str], settings: list[str], duration
             sec = time.perf_counter() - tic
             err = point_errors(r.X, X_true, vis)
             row = {
-                "setting": name, "motion": m, "images": cap.num_images,
-                "error_mm": err["error_mm"], "error_missing_mm": err["error_missing_mm"],
+                "setting": name,
+                "motion": m,
+                "images": cap.num_images,
+                "error_mm": err["error_mm"],
+                "error_missing_mm": err["error_missing_mm"],
                 "oracle_mm": point_errors(oracle_reconstruct(cap, t_true), X_true, vis)["error_mm"],
-                "pseudo_triangulation_mm": point_errors(initialise(cap, opts), X_true,
-                                                        vis)["error_mm"],
-                "kendall_tau": kendall_tau(r.order, t_true), "iterations": r.nit,
+                "pseudo_triangulation_mm": point_errors(initialise(cap, opts), X_true, vis)[
+                    "error_mm"
+                ],
+                "kendall_tau": kendall_tau(r.order, t_true),
+                "iterations": r.nit,
                 "seconds": sec,
             }
-            row["pass"] = target(name, row["error_mm"], row["oracle_mm"],
-                                 row["pseudo_triangulation_mm"], row["kendall_tau"])
+            row["pass"] = target(
+                name,
+                row["error_mm"],
+                row["oracle_mm"],
+                row["pseudo_triangulation_mm"],
+                row["kendall_tau"],
+            )
             rows.append(row)
-            print(f"{name:32s} {m:20s} N={row['images']:4d} DLOE {row['error_mm']:7.3f} mm "
-                  f"(missing {row['error_missing_mm']:6.3f})  oracle {row['oracle_mm']:7.3f}  "
-                  f"pseudo-tri {row['pseudo_triangulation_mm']:7.3f}  |tau| "
-                  f"{row['kendall_tau']:.4f}  {row['iterations']:3d} it {sec:5.1f} s  "
-                  f"{'PASS' if row['pass'] else 'FAIL'}", flush=True)
+            print(
+                f"{name:32s} {m:20s} N={row['images']:4d} DLOE {row['error_mm']:7.3f} mm "
+                f"(missing {row['error_missing_mm']:6.3f})  oracle {row['oracle_mm']:7.3f}  "
+                f"pseudo-tri {row['pseudo_triangulation_mm']:7.3f}  |tau| "
+                f"{row['kendall_tau']:.4f}  {row['iterations']:3d} it {sec:5.1f} s  "
+                f"{'PASS' if row['pass'] else 'FAIL'}",
+                flush=True,
+            )
     out.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": platform.platform(), "cpus": __import__("os").cpu_count(),
-            "python": sys.version.split()[0], "numpy": np.__version__,
-            "duration_s": duration, "seed": seed, "options": Options().to_dict()}
+    meta = {
+        "machine": platform.platform(),
+        "cpus": __import__("os").cpu_count(),
+        "python": sys.version.split()[0],
+        "numpy": np.__version__,
+        "duration_s": duration,
+        "seed": seed,
+        "options": Options().to_dict(),
+    }
     (out / "targets.json").write_text(json.dumps({"meta": meta, "runs": rows}, indent=2))
     return rows
 
