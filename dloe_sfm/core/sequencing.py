@@ -5,6 +5,8 @@ Shapes: N images, P points, X (N, P, 3); streams / frames (N,) int.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -77,22 +79,25 @@ def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return s[path] + t[np.arange(m), path] * np.sqrt(seg_len2[path])
 
 
-def arc_distance(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
-    """Arc distance between images, (N, N) symmetric.
+@dataclass
+class Placement:
+    """Every image placed on every stream's polyline (streams of 2+ images) in 3D shape space.
 
-    Within a stream: path length of its 3D shapes between the two images. Across streams a and b:
-    each image of a is placed on b's polyline by order-preserving DTW and the distance is the arc
-    length between the positions (and vice versa), averaged over the directions available. Two lone
-    photos are compared through every stream's polyline (median). Without any stream of two or more
-    images this falls back to the Euclidean distance.
+    ``pos[c, i]``: arc-length position of image i on polyline ``lines[c]`` (its own arc length
+    for the line's own images; order-preserving DTW for another stream's images).
     """
+
+    members: list[np.ndarray]
+    lines: list[np.ndarray]
+    pos: np.ndarray
+
+
+def place_on_streams(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> Placement:
+    """The DTW placements shared by :func:`arc_distance` and :func:`affine_time`."""
     n = X.shape[0]
     F = X.reshape(n, -1)
     members = stream_members(streams, frames)
     lines = [m for m in members if m.size >= 2]
-    if not lines:
-        return euclidean_distance(X)
-    # pos[c][i]: position of image i on polyline c
     pos = np.empty((len(lines), n))
     for c, idx in enumerate(lines):
         B = F[idx]
@@ -101,12 +106,31 @@ def arc_distance(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.n
                 pos[c, idx] = arc_length(B)
             else:
                 pos[c, other] = dtw_positions(F[other], B)
+    return Placement(members=members, lines=lines, pos=pos)
+
+
+def arc_distance(
+    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None
+) -> np.ndarray:
+    """Arc distance between images, (N, N) symmetric.
+
+    Within a stream: path length of its 3D shapes between the two images. Across streams a and b:
+    each image of a is placed on b's polyline by order-preserving DTW and the distance is the arc
+    length between the positions (and vice versa), averaged over the directions available. Two
+    lone photos are compared through every stream's polyline (median). Without any stream of two
+    or more images this falls back to the Euclidean distance.
+    """
+    n = X.shape[0]
+    pl = placement or place_on_streams(X, streams, frames)
+    if not pl.lines:
+        return euclidean_distance(X)
+    pos = pl.pos
     line_of = np.full(n, -1)
-    for c, idx in enumerate(lines):
+    for c, idx in enumerate(pl.lines):
         line_of[idx] = c
     Z = np.zeros((n, n))
     cnt = np.zeros((n, n))
-    for c in range(len(lines)):
+    for c in range(len(pl.lines)):
         on_c = line_of == c
         dc = np.abs(pos[c][:, None] - pos[c][None, :])
         use = on_c[:, None] | on_c[None, :]
@@ -123,7 +147,9 @@ def arc_distance(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.n
     return Z
 
 
-def affine_time(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray | None:
+def affine_time(
+    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None
+) -> np.ndarray | None:
     """Time of every image assuming each stream runs at a constant frame rate (videos).
 
     Stream s's images are at ``t = a_s + b_s frame``. Every image of a stream is placed on every
@@ -135,53 +161,41 @@ def affine_time(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.nd
     two streams have two or more images.
     """
     n = X.shape[0]
-    F = X.reshape(n, -1)
-    members = stream_members(streams, frames)
-    lines = [m for m in members if m.size >= 2]
+    pl = placement or place_on_streams(X, streams, frames)
+    lines = pl.lines
     if len(lines) < 2:
         return None
     k = len(lines)
-    log_rate_rows, _offset_rows = [], []
-    place = {}  # (line c, image i) -> fractional frame of c at which i sits
-    arcs = [arc_length(F[idx]) for idx in lines]
+    # fractional frame number of line c at which every image sits
+    at = np.empty((k, n))
     for c, idx in enumerate(lines):
-        fr = frames[idx].astype(float)
-        for other in members:
-            if other is idx:
-                continue
-            pos = dtw_positions(F[other], F[idx])
-            # arc length back to a (fractional) frame number on the polyline of c
-            arc, keep = np.unique(arcs[c], return_index=True)
-            at = np.interp(pos, arc, fr[keep]) if arc.size > 1 else np.full(pos.size, fr[0])
-            for i, v in zip(other, at, strict=True):
-                place[(c, int(i))] = v
-            if other.size >= 2:
-                d = next(j for j, m in enumerate(lines) if m is other)
-                slope, icpt, *_ = theilslopes(at, frames[other].astype(float))
+        arc, keep = np.unique(pl.pos[c, idx], return_index=True)
+        fr = frames[idx].astype(float)[keep]
+        at[c] = np.interp(pl.pos[c], arc, fr) if arc.size > 1 else fr[0]
+    pairs = []  # (d, c, log slope, intercept, size): f_c = icpt + slope f_d
+    for c in range(k):
+        for d, other in enumerate(lines):
+            if d != c:
+                slope, icpt, *_ = theilslopes(at[c, other], frames[other].astype(float))
                 if slope > 0:
-                    log_rate_rows.append((d, c, np.log(slope), icpt, other.size))
-    # t = a_s + b_s f; f_c = icpt + slope f_d  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
+                    pairs.append((d, c, np.log(slope), icpt, other.size))
+    # t = a_s + b_s f  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
     ref = int(np.argmax([m.size for m in lines]))
-    A = np.zeros((len(log_rate_rows) + 1, k))
-    y = np.zeros(len(log_rate_rows) + 1)
-    wts = np.ones(len(log_rate_rows) + 1)
-    for r, (d, c, lslope, _, size) in enumerate(log_rate_rows):
+    A = np.zeros((len(pairs) + 1, k))
+    y = np.zeros(len(pairs) + 1)
+    wts = np.ones(len(pairs) + 1)
+    for r, (d, c, lslope, _, size) in enumerate(pairs):
         A[r, d], A[r, c], y[r], wts[r] = 1.0, -1.0, lslope, np.sqrt(size)
     A[-1, ref], wts[-1] = 1.0, 1e3
-    log_b = np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0]
-    b = np.exp(log_b)
+    b = np.exp(np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0])
     A[:] = 0.0
-    for r, (d, c, _, icpt, _) in enumerate(log_rate_rows):
+    for r, (d, c, _, icpt, _) in enumerate(pairs):
         A[r, d], A[r, c], y[r] = 1.0, -1.0, b[c] * icpt
     A[-1, ref], y[-1] = 1.0, 0.0
     a = np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0]
-    t = np.full(n, np.nan)
+    t = np.median(a[:, None] + b[:, None] * at, axis=0)  # lone photos: through every line
     for c, idx in enumerate(lines):
         t[idx] = a[c] + b[c] * frames[idx]
-    for m in members:
-        if m.size == 1:
-            i = int(m[0])
-            t[i] = np.median([a[c] + b[c] * place[(c, i)] for c in range(k)])
     return t
 
 
@@ -195,13 +209,15 @@ def euclidean_distance(X: np.ndarray) -> np.ndarray:
 
 
 def distance_matrix(
-    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, kind: Distance | str = Distance.ARC
+    X: np.ndarray,
+    streams: np.ndarray,
+    frames: np.ndarray,
+    kind: Distance | str = Distance.ARC,
+    placement: Placement | None = None,
 ) -> np.ndarray:
-    return (
-        arc_distance(X, streams, frames)
-        if Distance(kind) is Distance.ARC
-        else euclidean_distance(X)
-    )
+    if Distance(kind) is Distance.ARC:
+        return arc_distance(X, streams, frames, placement)
+    return euclidean_distance(X)
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:

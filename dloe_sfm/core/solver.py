@@ -22,6 +22,7 @@ from .sequencing import (
     mds_embedding,
     order_from_embedding,
     orient,
+    place_on_streams,
 )
 from .steps import (
     Problem,
@@ -95,10 +96,11 @@ def _sequence(
     the loop uses classical MDS of the distances (fast) and ``final`` computes the order with
     ``options.embedding``.
     """
-    Z = distance_matrix(X, prob.streams, frames, options.distance)
+    placement = place_on_streams(X, prob.streams, frames)
+    Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
     mds = orient(mds_embedding(Z), prob.streams, frames)
     if options.embedding is Embedding.AFFINE:
-        t = affine_time(X, prob.streams, frames)
+        t = affine_time(X, prob.streams, frames, placement)
         if t is not None:
             slope = np.polyfit(t, mds, 1)[0]
             return t * abs(slope), t
