@@ -316,12 +316,15 @@ def _two_opt(Z: np.ndarray, path: np.ndarray, max_passes: int) -> np.ndarray:
 
 
 def line_embedding(Z: np.ndarray, kind: Embedding | str = Embedding.MDS) -> np.ndarray:
+    """A line embedding of the distance matrix Z (N, N): MDS, spectral ranking or SHP."""
     kind = Embedding(kind)
     if kind is Embedding.MDS:
         return mds_embedding(Z)
     if kind is Embedding.SPECTRAL:
         return spectral_embedding(Z)
-    return shp_embedding(Z)
+    if kind is Embedding.SHP:
+        return shp_embedding(Z)
+    raise ValueError(f"'{kind.value}' is not an embedding of a distance matrix (see affine_time)")
 
 
 def orient(f: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
