@@ -367,6 +367,11 @@ def write_model(
     return path
 
 
+def _check_camera_model(name: str) -> None:
+    if name not in pycolmap.CameraModelId.__members__ or name == "INVALID":
+        raise InputError(f"unknown COLMAP camera model '{name}'")
+
+
 def synthetic_workspace(
     path: Path | str,
     *,
@@ -387,8 +392,7 @@ def synthetic_workspace(
     model_dir = path / "sparse" / "0"
     if has_model(model_dir):
         raise InputError(f"{model_dir}: a COLMAP model is already there")
-    if camera_model not in pycolmap.CameraModelId.__members__ or camera_model == "INVALID":
-        raise InputError(f"unknown COLMAP camera model '{camera_model}'")
+    _check_camera_model(camera_model)
     quiet_colmap()
     options = pycolmap.SyntheticDatasetOptions()
     options.num_rigs = num_cameras
@@ -451,8 +455,7 @@ def run_sfm(
         raise InputError(f"camera_mode '{camera_mode}': expected one of {SFM_CAMERA_MODES}")
     if mapper not in ("global", "incremental"):
         raise InputError(f"mapper '{mapper}': expected 'global' or 'incremental'")
-    if camera_model not in pycolmap.CameraModelId.__members__ or camera_model == "INVALID":
-        raise InputError(f"unknown COLMAP camera model '{camera_model}'")
+    _check_camera_model(camera_model)
     quiet_colmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model

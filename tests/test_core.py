@@ -339,3 +339,35 @@ def test_missing_points_are_reconstructed(assets_dir):
     miss = ~cap.visible
     assert miss.sum() > 0.25 * miss.size
     assert e[miss].mean() < 5.0 and e[~miss].mean() < 3.0
+
+
+def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
+    """Two unrelated clips seen by different cameras: two events, each reconstructed alone."""
+    a = simulate(
+        load_mocap(assets_dir / "mocap" / "walking_1.npz"), SimulationSettings(duration=1.0)
+    )
+    b = simulate(
+        load_mocap(assets_dir / "mocap" / "jumping_1.npz"), SimulationSettings(duration=1.0)
+    )
+    ia, ib = np.flatnonzero(a.stream < 2), np.flatnonzero(b.stream >= 2)
+
+    def cat(name):
+        return np.concatenate([getattr(a, name)[ia], getattr(b, name)[ib]])
+
+    cap = Capture(
+        x=cat("x"), K=cat("K"), R=cat("R"), C=cat("C"), stream=cat("stream"), frame=cat("frame")
+    ).validate()
+    X_true = np.concatenate([a.extras["X_true"][ia], b.extras["X_true"][ib]])
+    truth = np.r_[np.zeros(ia.size, int), np.ones(ib.size, int)]
+    r = reconstruct(cap, Options())
+    assert r.events.max() == 1
+    assert (r.events == truth).all() or (r.events != truth).all()
+    coo = r.A.tocoo()
+    assert (r.events[coo.row] == r.events[coo.col]).all()  # no edge between events
+    # the order lists one event, then the other, each in time order
+    assert (np.diff(r.events[r.order]) != 0).sum() == 1
+    t = np.concatenate([a.extras["t_true"][ia], b.extras["t_true"][ib]])
+    for e in (0, 1):
+        idx = r.order[r.events[r.order] == e]  # this event's images, in estimated order
+        assert kendall_tau(np.arange(idx.size), t[idx]) > 0.98  # 2 cameras, 1 s per event
+        assert 1000 * np.linalg.norm(r.X[idx] - X_true[idx], axis=2).mean() < 3.0

@@ -29,7 +29,7 @@ import scipy.sparse as sp
 
 from ..core.capture import Capture
 from ..core.options import Options
-from ..core.solver import build_problem, initialise
+from ..core.solver import build_problem, initialise, normalisation
 from ..core.steps import full_weights, select_candidates, w_step, x_step
 
 logger = logging.getLogger("dloe_sfm")
@@ -69,8 +69,7 @@ def sedl(capture: Capture, *, num_candidates: int = 8, stream_weight: float = 0.
     """
     options = (options or Options()).replace(prior_weight=stream_weight)
     X0 = initialise(capture, options)
-    origin = np.nanmean(X0.reshape(-1, 3), axis=0)
-    scale = float(np.median(np.linalg.norm(X0 - capture.C[:, None, :], axis=2)))
+    origin, scale = normalisation(capture, X0)
     prob = build_problem(capture, options, origin, scale)
     n = capture.num_images
     X = (X0 - origin) / scale

@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 from .capture import Capture
 from .events import segment_events
 from .init import fill_missing, pseudo_triangulate
-from .options import Embedding, Options
+from .options import Distance, Embedding, Options
 from .result import Result
 from .sequencing import (
     affine_time,
@@ -39,7 +39,7 @@ from .steps import (
 logger = logging.getLogger("dloe_sfm")
 
 
-def _normalisation(capture: Capture, X0: np.ndarray) -> tuple[np.ndarray, float]:
+def normalisation(capture: Capture, X0: np.ndarray) -> tuple[np.ndarray, float]:
     """Origin and scale of the normalised frame: scene centroid, median camera-to-point distance."""
     origin = np.nanmean(X0.reshape(-1, 3), axis=0)
     dist = np.linalg.norm(X0 - capture.C[:, None, :], axis=2)
@@ -96,7 +96,8 @@ def _sequence(
     the loop uses classical MDS of the distances (fast) and ``final`` computes the order with
     ``options.embedding``.
     """
-    placement = place_on_streams(X, prob.streams, frames)
+    needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
+    placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None
     Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
     mds = orient(mds_embedding(Z), prob.streams, frames)
     if options.embedding is Embedding.AFFINE:
@@ -114,74 +115,92 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
     """Estimate every image's 3D points and the images' temporal graph and order.
 
     ``capture`` must be valid (``Capture.validate``). Returns a :class:`Result` in world units.
-    With ``options.segment_events`` the final graph is split into connected components and each
-    event is solved again on its own.
+    With ``options.segment_events``, temporally disjoint events are found first (connected
+    components of a W fitted in shape space to the initial shapes: time-line candidates would
+    bridge events) and each event is sequenced and reconstructed on its own.
     """
     options = options or Options()
-    result = _solve(capture, options)
-    if options.segment_events and result.events.max() > 0:
-        result = _solve_events(capture, options, result)
-    return result
+    started = time.perf_counter()
+    X_world = initialise(capture, options)
+    if options.segment_events:
+        labels = initial_events(capture, options, X_world)
+        if labels.max() > 0:
+            return _solve_events(capture, options, labels)
+    return _solve(capture, options, X_world, started)
 
 
-def _solve_events(capture: Capture, options: Options, joint: Result) -> Result:
+def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
+    """(N,) event labels from one W-step with shape-space candidates on the initial shapes.
+
+    An event seen by fewer than two streams cannot be triangulated; it joins the largest event.
+    """
+    origin, scale = normalisation(capture, X_world)
+    prob = build_problem(capture, options, origin, scale)
+    X = (X_world - origin) / scale
+    n = X.shape[0]
+    cand = select_candidates(
+        X.reshape(n, -1), prob, options.num_candidates, min_angle=options.min_ray_angle
+    )
+    W_var = w_step(
+        X,
+        np.ones(n),
+        cand,
+        prob,
+        lambda1=options.lambda1,
+        lambda3=options.lambda3,
+        ridge=options.ridge,
+    )
+    labels = segment_events(full_weights(W_var, prob))
+    sizes = np.bincount(labels)
+    for e in range(labels.max() + 1):
+        if np.unique(prob.streams[labels == e]).size < 2:
+            labels[labels == e] = np.argmax(sizes)
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels
+
+
+def _solve_events(capture: Capture, options: Options, labels: np.ndarray) -> Result:
+    """Solve every event on its own and assemble one result (orders concatenated by event)."""
     start = time.perf_counter()
     n, p = capture.num_images, capture.num_points
     X = np.empty((n, p, 3))
     embedding = np.empty(n)
-    rows, cols, avals, wvals = [], [], [], []
     D = np.empty(n)
-    order = []
+    A_parts, W_parts, order, results = [], [], [], []
     offset = 0.0
-    sub_options = options.replace(segment_events=False)
-    for e in range(int(joint.events.max()) + 1):
-        idx = np.flatnonzero(joint.events == e)
+    for e in range(int(labels.max()) + 1):
+        idx = np.flatnonzero(labels == e)
         logger.info("event %d: %d images", e, idx.size)
-        sub = capture.subset(idx)
-        if np.unique(sub.stream_ids).size < 2 or idx.size < 3:
-            X[idx], embedding[idx], D[idx] = joint.X[idx], joint.embedding[idx], joint.D[idx]
-            A, W = joint.A[idx][:, idx].tocoo(), joint.W[idx][:, idx].tocoo()
-            sub_order = idx[np.argsort(joint.embedding[idx])]
-        else:
-            r = _solve(sub, sub_options)
-            X[idx], D[idx] = r.X, r.D
-            embedding[idx] = r.embedding - r.embedding.min() + offset
-            A, W = r.A.tocoo(), r.W.tocoo()
-            sub_order = idx[r.order]
+        r = _solve(capture.subset(idx), options)
+        results.append(r)
+        X[idx], D[idx] = r.X, r.D
+        embedding[idx] = r.embedding - r.embedding.min() + offset
         offset = embedding[idx].max() + 1.0
-        rows.append(idx[A.row])
-        cols.append(idx[A.col])
-        avals.append(A.data)
-        wvals.append((idx[W.row], idx[W.col], W.data))
-        order.append(sub_order)
-    A = sp.csr_matrix(
-        (np.concatenate(avals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)
-    )
-    W = sp.csr_matrix(
-        (
-            np.concatenate([w[2] for w in wvals]),
-            (np.concatenate([w[0] for w in wvals]), np.concatenate([w[1] for w in wvals])),
-        ),
-        shape=(n, n),
-    )
-    timings = dict(joint.timings)
-    timings["events"] = time.perf_counter() - start
+        order.append(idx[r.order])
+        for parts, M in ((A_parts, r.A), (W_parts, r.W)):
+            coo = M.tocoo()
+            parts.append((coo.data, idx[coo.row], idx[coo.col]))
+
+    def assemble(parts: list) -> sp.csr_matrix:
+        data, rows, cols = (np.concatenate(v) for v in zip(*parts, strict=True))
+        return sp.csr_matrix((data, (rows, cols)), shape=(n, n))
+
     return Result(
         X=X,
         order=np.concatenate(order),
-        A=A,
-        W=W,
+        A=assemble(A_parts),
+        W=assemble(W_parts),
         D=D,
-        events=joint.events,
+        events=labels,
         embedding=embedding,
-        cost_history=joint.cost_history,
-        change_history=joint.change_history,
-        nit=joint.nit,
-        success=joint.success,
-        message=joint.message,
-        seconds=joint.seconds + timings["events"],
-        timings=timings,
-        scale=joint.scale,
+        cost_history=np.concatenate([r.cost_history for r in results]),
+        change_history=np.concatenate([r.change_history for r in results]),
+        nit=sum(r.nit for r in results),
+        success=all(r.success for r in results),
+        message="; ".join(f"event {e}: {r.message}" for e, r in enumerate(results)),
+        seconds=time.perf_counter() - start,
+        timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
+        scale=results[0].scale,
     )
 
 
@@ -286,11 +305,18 @@ def _alternate(
     return False, f"stopped after {budget} iterations"
 
 
-def _solve(capture: Capture, options: Options) -> Result:
-    t_start = time.perf_counter()
+def _solve(
+    capture: Capture,
+    options: Options,
+    X_world: np.ndarray | None = None,
+    started: float | None = None,
+) -> Result:
+    """One event: init (unless given, then timed from ``started``), alternation, sequencing."""
+    t_start = time.perf_counter() if started is None else started
     timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0}
-    X_world = initialise(capture, options)
-    origin, scale = _normalisation(capture, X_world)
+    if X_world is None:
+        X_world = initialise(capture, options)
+    origin, scale = normalisation(capture, X_world)
     prob = build_problem(capture, options, origin, scale)
     X = (X_world - origin) / scale
     timings["init"] = time.perf_counter() - t_start
@@ -360,7 +386,7 @@ def oracle_reconstruct(
     W = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
     options = Options()
     X0 = initialise(capture, options)
-    origin, scale = _normalisation(capture, X0)
+    origin, scale = normalisation(capture, X0)
     prob = build_problem(capture, options, origin, scale)
     D = np.ones(n)
     D[order[[0, -1]]] = 0.0
