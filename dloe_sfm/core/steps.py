@@ -37,22 +37,25 @@ class Problem:
 
 
 def chain_matrix(streams: np.ndarray, frames: np.ndarray) -> sp.csr_matrix:
-    """W_chain: 1/2, 1/2 to the previous / next image of the same stream.
+    """W_chain: the previous and next image of the same stream, barycentric in frame number.
 
-    A stream's first and last images get an empty row (the authors give them weight 1 to their one
-    neighbour, which pulls a moving point back towards it: a bias measured at the clip ends).
+    (1/2, 1/2 when no frame was dropped, as in the authors' code; a video's frame numbers are
+    proportional to time.) A stream's first and last images get an empty row (the authors give
+    them weight 1 to their one neighbour, which pulls a moving point back towards it: a bias
+    measured at the clip ends).
     """
     n = streams.size
     order = np.lexsort((frames, streams))
     s = streams[order]
     interior = np.zeros(n, dtype=bool)
     interior[1:-1] = (s[1:-1] == s[:-2]) & (s[1:-1] == s[2:])
-    mid = order[interior]
-    prev = order[np.flatnonzero(interior) - 1]
-    nxt = order[np.flatnonzero(interior) + 1]
+    pos = np.flatnonzero(interior)
+    mid, prev, nxt = order[pos], order[pos - 1], order[pos + 1]
+    f = frames.astype(np.float64)
+    w_prev = (f[nxt] - f[mid]) / (f[nxt] - f[prev])
     rows = np.concatenate([mid, mid])
     cols = np.concatenate([prev, nxt])
-    return sp.csr_matrix((np.full(rows.size, 0.5), (rows, cols)), shape=(n, n))
+    return sp.csr_matrix((np.concatenate([w_prev, 1.0 - w_prev]), (rows, cols)), shape=(n, n))
 
 
 def temporal_ends(f: np.ndarray, streams: np.ndarray) -> np.ndarray:
