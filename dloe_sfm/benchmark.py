@@ -55,7 +55,10 @@ from .synth import SimulationSettings, load_mocap, simulate
 logger = logging.getLogger("dloe_sfm")
 
 REPO = Path(__file__).resolve().parents[1]
-DEFAULT_DATA = REPO.parent / "shared" / "data" / "mocap"
+SHARED_DATA = REPO.parent / "shared" / "data" / "mocap"
+# a user's clone has no ../shared: the bundled clips (walking_1, jumping_1, basketball_signal_1)
+# still run the --quick grids and any suite restricted to them with --motions
+DEFAULT_DATA = SHARED_DATA if SHARED_DATA.is_dir() else REPO / "assets" / "mocap"
 DEFAULT_OUT = Path("outputs") / "benchmark"
 
 # ten CMU motions covering the paper's categories (running clips are only ~1.4 s long)
@@ -489,7 +492,8 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     ----------
     suite : one of :data:`SUITES`.
     out : output directory (default ``outputs/benchmark/<suite>``).
-    data : folder of mocap ``.npz`` files (default ``../shared/data/mocap`` beside the repo).
+    data : folder of mocap ``.npz`` files (default ``../shared/data/mocap`` beside the repo, else
+        the bundled ``assets/mocap``).
     quick : reduced grid (2 motions, 1 seed, 2 settings, 1 s clips) for smoke tests.
     seeds : number of random seeds per (motion, setting) (default 3, quick 1).
     motions : motion names (``walking_1`` or file stems / paths) instead of the suite's default.
@@ -578,7 +582,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="reduced grid: 2 motions, 1 seed, 2 settings, 1 s clips")
     parser.add_argument("--out", type=Path, help="output folder (default outputs/benchmark/SUITE)")
     parser.add_argument("--data", type=Path,
-                        help=f"mocap folder (default {DEFAULT_DATA}, i.e. ../shared/data/mocap)")
+                        help="mocap folder (default ../shared/data/mocap beside the repo, else the "
+                             "bundled assets/mocap clips)")
     parser.add_argument("--seeds", type=int, help="seeds per setting (default 3, quick 1)")
     parser.add_argument("--motions", nargs="+", help="motion names, e.g. walking_1 soccer_2")
     parser.add_argument("--jobs", type=int, default=1,
