@@ -371,3 +371,17 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
         idx = r.order[r.events[r.order] == e]  # this event's images, in estimated order
         assert kendall_tau(np.arange(idx.size), t[idx]) > 0.98  # 2 cameras, 1 s per event
         assert 1000 * np.linalg.norm(r.X[idx] - X_true[idx], axis=2).mean() < 3.0
+
+
+def test_lone_photos_without_streams(assets_dir):
+    """Crowd photos: every image its own stream (no known order at all), 8 viewpoints."""
+    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    cap = simulate(seq, SimulationSettings(duration=1.5, num_streams=8, rate=15))
+    lone = Capture(x=cap.x, K=cap.K, R=cap.R, C=cap.C, stream=np.full(cap.num_images, -1))
+    lone.validate()
+    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+    r = reconstruct(lone, Options())
+    err = 1000 * np.linalg.norm(r.X - X_true, axis=2).mean()
+    oracle = 1000 * np.linalg.norm(oracle_reconstruct(lone, t) - X_true, axis=2).mean()
+    assert err <= 1.5 * oracle + 0.5, (err, oracle)
+    assert kendall_tau(r.order, t) >= 0.99
