@@ -301,6 +301,13 @@ def test_chain_matrix_rows():
     assert np.allclose(W[[0, 1, 3, 4, 5]], 0)  # stream ends and a stream of one: no chain row
 
 
+def assert_near_oracle(cap, X, X_true, t):
+    """The core's clean-capture target: mean error <= 1.5 x the oracle's + 0.5 mm."""
+    err = 1000 * np.linalg.norm(X - X_true, axis=2).mean()
+    oracle = 1000 * np.linalg.norm(oracle_reconstruct(cap, t) - X_true, axis=2).mean()
+    assert err <= 1.5 * oracle + 0.5, (err, oracle)
+
+
 def walking_capture(assets_dir, **kw):
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     return simulate(seq, SimulationSettings(duration=1.5, **kw)).validate()
@@ -323,9 +330,7 @@ def test_end_to_end_walking_accuracy(assets_dir):
     cap = walking_capture(assets_dir)
     X_true, t = cap.extras["X_true"], cap.extras["t_true"]
     r = reconstruct(cap, Options())
-    err = 1000 * np.linalg.norm(r.X - X_true, axis=2).mean()
-    oracle = 1000 * np.linalg.norm(oracle_reconstruct(cap, t) - X_true, axis=2).mean()
-    assert err <= 1.5 * oracle + 0.5, (err, oracle)
+    assert_near_oracle(cap, r.X, X_true, t)
     assert kendall_tau(r.order, t) >= 0.99
     assert r.events.max() == 0
     assert r.A.nnz <= 12 * cap.num_images  # sparse graph
@@ -381,7 +386,5 @@ def test_lone_photos_without_streams(assets_dir):
     lone.validate()
     X_true, t = cap.extras["X_true"], cap.extras["t_true"]
     r = reconstruct(lone, Options())
-    err = 1000 * np.linalg.norm(r.X - X_true, axis=2).mean()
-    oracle = 1000 * np.linalg.norm(oracle_reconstruct(lone, t) - X_true, axis=2).mean()
-    assert err <= 1.5 * oracle + 0.5, (err, oracle)
+    assert_near_oracle(lone, r.X, X_true, t)
     assert kendall_tau(r.order, t) >= 0.99

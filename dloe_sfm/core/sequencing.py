@@ -87,7 +87,6 @@ class Placement:
     for the line's own images; order-preserving DTW for another stream's images).
     """
 
-    members: list[np.ndarray]
     lines: list[np.ndarray]
     pos: np.ndarray
 
@@ -106,7 +105,7 @@ def place_on_streams(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> 
                 pos[c, idx] = arc_length(B)
             else:
                 pos[c, other] = dtw_positions(F[other], B)
-    return Placement(members=members, lines=lines, pos=pos)
+    return Placement(lines=lines, pos=pos)
 
 
 def arc_distance(

@@ -79,9 +79,11 @@ def initialise(capture: Capture, options: Options) -> np.ndarray:
     return fill_missing(X0, capture.stream_ids, capture.frame)
 
 
-def _degrees(f: np.ndarray, prob: Problem, options: Options) -> np.ndarray:
-    """Fixed degrees: 1, and ``end_degree`` for the images at the ends of the time line."""
-    D = np.ones(f.size)
+def _degrees(
+    f: np.ndarray, prob: Problem, options: Options, D: np.ndarray | None = None
+) -> np.ndarray:
+    """D (default: fixed, all 1) with ``end_degree`` for the images at the ends of the time line."""
+    D = np.ones(f.size) if D is None else D
     D[temporal_ends(f, prob.streams)] = options.end_degree
     return D
 
@@ -125,7 +127,7 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
     if options.segment_events:
         labels = initial_events(capture, options, X_world)
         if labels.max() > 0:
-            return _solve_events(capture, options, labels)
+            return _solve_events(capture, options, labels, started)
     return _solve(capture, options, X_world, started)
 
 
@@ -159,9 +161,11 @@ def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> n
     return labels
 
 
-def _solve_events(capture: Capture, options: Options, labels: np.ndarray) -> Result:
-    """Solve every event on its own and assemble one result (orders concatenated by event)."""
-    start = time.perf_counter()
+def _solve_events(capture: Capture, options: Options, labels: np.ndarray, started: float) -> Result:
+    """Solve every event on its own and assemble one result (orders concatenated by event).
+
+    ``seconds`` counts from ``started``: the whole-capture initialisation and event detection too.
+    """
     n, p = capture.num_images, capture.num_points
     X = np.empty((n, p, 3))
     embedding = np.empty(n)
@@ -198,7 +202,7 @@ def _solve_events(capture: Capture, options: Options, labels: np.ndarray) -> Res
         nit=sum(r.nit for r in results),
         success=all(r.success for r in results),
         message="; ".join(f"event {e}: {r.message}" for e, r in enumerate(results)),
-        seconds=time.perf_counter() - start,
+        seconds=time.perf_counter() - started,
         timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         scale=results[0].scale,
     )
@@ -253,7 +257,7 @@ def _alternate(
         W = full_weights(st.W_var, prob)
         t1 = time.perf_counter()
         if not options.fixed_degree:
-            st.D = d_step(
+            D = d_step(
                 st.X,
                 W,
                 prob,
@@ -262,7 +266,7 @@ def _alternate(
                 floor=options.degree_floor,
                 embedding=prior,
             )
-            st.D[temporal_ends(st.f, prob.streams)] = options.end_degree
+            st.D = _degrees(st.f, prob, options, D)
         t2 = time.perf_counter()
         X_new = x_step(W, st.D, prob, lambda1=options.lambda1, lambda2=lambda2, X_prev=st.X)
         t3 = time.perf_counter()
