@@ -76,6 +76,33 @@ def frame_file_stem(rank: int, image_name: str, num_images: int) -> str:
     return f"{rank:0{width}d}_{stem}"
 
 
+def solved_capture(capture: Capture, result: Result) -> Capture:
+    """The (N, P', 2) observations ``result.X`` refers to: ``result.solved`` when the solver
+    made one (subjects aggregated, left/right swaps undone), else ``capture`` itself."""
+    return capture if result.solved is None else result.solved
+
+
+def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:
+    """(P',) subject id and (P',) layout point id of every column of ``result.X``; one subject:
+    subject 0 and the column index."""
+    if result.subject_id is None:
+        return (np.zeros(result.X.shape[1], dtype=np.int64),
+                np.arange(result.X.shape[1], dtype=np.int64))
+    return result.subject_id.astype(np.int64), result.point_id.astype(np.int64)
+
+
+def column_edges(edges: np.ndarray, subject_id: np.ndarray, point_id: np.ndarray) -> np.ndarray:
+    """(E', 2) skeleton edges between columns of X: the layout's (E, 2) edges between point ids,
+    repeated for every subject (subject_id, point_id (P',) as from ``column_ids``)."""
+    column = {(int(s), int(j)): k for k, (s, j) in enumerate(zip(subject_id, point_id,
+                                                                   strict=True))}
+    out = [(column[s, int(a)], column[s, int(b)])
+           for s in np.unique(subject_id).tolist()
+           for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+           if (s, int(a)) in column and (s, int(b)) in column]
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
 def write_point_cloud(path: Path, xyz: np.ndarray, *, colors: np.ndarray | None = None,
                       attributes: dict[str, np.ndarray] | None = None) -> Path:
     """Binary PLY of points xyz (M, 3) float64, colors (M, 3) uint8, and extra per-point
@@ -145,8 +172,47 @@ def _event_summaries(capture: Capture, result: Result, errors: np.ndarray) -> li
     return summaries
 
 
+def _subject_summaries(capture: Capture, result: Result, errors: np.ndarray,
+                       subject_id: np.ndarray) -> list[dict]:
+    visible = capture.visible
+    summaries = []
+    for subject in np.unique(subject_id):
+        columns = subject_id == subject
+        seen = result.order[visible[result.order][:, columns].any(axis=1)]
+        summaries.append({
+            "subject_id": int(subject),
+            "num_images_seen": int(seen.size),
+            "images_seen": capture.image_names[seen].tolist(),
+            "observed_fraction": float(visible[:, columns].mean()),
+            "reprojection_error_px": error_stats(errors[:, columns]),
+        })
+    return summaries
+
+
+def _robust_report(capture: Capture, result: Result, subject_id: np.ndarray,
+                   point_id: np.ndarray, point_names: list[str]) -> dict:
+    """Observations the robust loss down-weighted and left/right swaps it fixed, by name."""
+    names = capture.image_names
+    outliers = [
+        {"image": str(names[i]), "point": point_names[point_id[k]],
+         "subject_id": int(subject_id[k]), "residual_px": float(residual)}
+        for (i, k), residual in zip(result.outliers, result.outlier_residual_px, strict=True)
+    ]
+    swaps = [
+        {"image": str(names[i]), "points": [point_names[point_id[a]], point_names[point_id[b]]],
+         "subject_id": int(subject_id[a])}
+        for i, a, b in result.swaps
+    ]
+    return {"downweighted": {"count": len(outliers), "observations": outliers},
+            "swaps_fixed": {"count": len(swaps), "swaps": swaps}}
+
+
 def _check_shapes(capture: Capture, result: Result) -> None:
+    """``capture`` as from ``solved_capture``."""
     n, p = capture.num_images, capture.num_points
+    if capture.x.ndim != 3:
+        raise InputError(f"result: field 'solved' is missing for the {capture.x.shape} "
+                         "several-subject capture")
     if result.X.shape != (n, p, 3):
         raise InputError(f"result: field 'X' must have shape ({n}, {p}, 3), got {result.X.shape}")
     if sorted(result.order.tolist()) != list(range(n)):
@@ -155,6 +221,19 @@ def _check_shapes(capture: Capture, result: Result) -> None:
         raise InputError(
             f"result: field 'events' must have shape ({n},), got {result.events.shape}"
         )
+    if (result.subject_id is None) != (result.point_id is None):
+        raise InputError("result: fields 'subject_id' and 'point_id' must be given together")
+    for name in ("subject_id", "point_id"):
+        ids = getattr(result, name)
+        if ids is not None and (ids.shape != (p,) or (ids < 0).any()):
+            raise InputError(f"result: field '{name}' must be ({p},) ids >= 0, got {ids.shape}")
+    for name, width in (("outliers", 2), ("swaps", 3)):
+        rows = np.asarray(getattr(result, name)).reshape(-1, width)
+        if (rows < 0).any() or (rows[:, 0] >= n).any() or (rows[:, 1:] >= p).any():
+            raise InputError(f"result: field '{name}' indexes an image or column out of range")
+    if result.outlier_residual_px.shape != (len(result.outliers),):
+        raise InputError(f"result: field 'outlier_residual_px' must have shape "
+                         f"({len(result.outliers)},), got {result.outlier_residual_px.shape}")
 
 
 def write_outputs(folder: Path, capture: Capture, result: Result, *,
@@ -162,9 +241,13 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                   layout: Layout | None = None, report: dict | None = None) -> dict:
     """Write the section-4 files into the existing folder ``folder`` (not atomic on its own).
 
+    ``capture`` is the solver's input; the observations written and scored are those of
+    ``solved_capture``. With several subjects, column k of X is point ``result.point_id[k]`` of
+    subject ``result.subject_id[k]``: frames carry both ids, skeletons repeat per subject.
     static_xyz (M, 3) float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries
     (inputs, parameters, stage timings, ...) are merged into ``report.json``. Returns the report.
     """
+    capture = solved_capture(capture, result)
     _check_shapes(capture, result)
     folder = Path(folder)
     n, p = capture.num_images, capture.num_points
@@ -172,14 +255,17 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     rank = result.rank
     visible = capture.visible
     errors = reprojection_errors(capture, result.X)
-    colors = point_colors(p)
-    point_ids = np.arange(p, dtype=np.int32)
-    point_names = list(layout.point_names) if layout is not None else [str(i) for i in range(p)]
-    if len(point_names) != p:
-        raise InputError(f"keypoint layout '{layout.name}' names {len(point_names)} points, "
-                         f"the capture has {p}")
-    edges = np.asarray(list(layout.edges) if layout is not None else [], dtype=np.int64)
-    edges = edges.reshape(-1, 2)
+    subject_id, point_id = column_ids(result)
+    num_layout = int(point_id.max()) + 1
+    layout_names = (list(layout.point_names) if layout is not None
+                    else [str(i) for i in range(num_layout)])
+    if len(layout_names) != num_layout:
+        raise InputError(f"keypoint layout '{layout.name}' names {len(layout_names)} points, "
+                         f"the capture has {num_layout}")
+    point_names = [layout_names[j] for j in point_id]
+    colors = point_colors(num_layout)[point_id]
+    subjects = result.subject_id is not None
+    edges = column_edges(list(layout.edges) if layout is not None else [], subject_id, point_id)
 
     (folder / "frames").mkdir()
     if edges.size:
@@ -190,8 +276,10 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         if not finite.any():
             logger.warning("image %s: no finite 3D point, no frame file written", names[i])
             continue
-        attributes = {"point_id": point_ids[finite],
-                      "observed": visible[i, finite].astype(np.uint8)}
+        attributes = {"point_id": point_id[finite].astype(np.int32)}
+        if subjects:
+            attributes["subject_id"] = subject_id[finite].astype(np.int32)
+        attributes["observed"] = visible[i, finite].astype(np.uint8)
         if capture.confidence is not None:
             conf = np.nan_to_num(capture.confidence[i], nan=0.0).astype(np.float32)
             attributes["confidence"] = conf[finite]
@@ -208,19 +296,22 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         write_point_cloud(folder / "static.ply", np.asarray(static_xyz, dtype=np.float64),
                           colors=rgb)
 
+    # point_names and edges are per column of X (a skeleton per subject)
     save_npz(folder / "trajectories.npz", X=result.X, order=result.order.astype(np.int64),
              image_names=names.astype(str), events=result.events.astype(np.int64),
              rank=rank.astype(np.int64), observed=visible, point_names=np.array(point_names),
-             edges=edges, embedding=result.embedding, reprojection_error=errors)
+             edges=edges, embedding=result.embedding, reprojection_error=errors,
+             **({"subject_id": subject_id, "point_id": point_id} if subjects else {}))
 
     with open(folder / "trajectories.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["rank", "image", "point_id", "x", "y", "z", "observed"])
+        writer.writerow(["rank", "image", "point_id", "x", "y", "z", "observed", "subject_id"])
         for i in result.order:
-            for j in range(p):
-                x, y, z = result.X[i, j]
-                writer.writerow([int(rank[i]), names[i], j, repr(float(x)), repr(float(y)),
-                                 repr(float(z)), int(visible[i, j])])
+            for k in range(p):
+                x, y, z = result.X[i, k]
+                writer.writerow([int(rank[i]), names[i], int(point_id[k]), repr(float(x)),
+                                 repr(float(y)), repr(float(z)), int(visible[i, k]),
+                                 int(subject_id[k])])
 
     with open(folder / "sequence.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -229,12 +320,13 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
             writer.writerow([int(rank[i]), names[i], int(result.events[i]), int(capture.stream[i]),
                              int(capture.frame[i])])
 
-    per_point = []
-    for j in range(p):
-        per_point.append({"point_id": j, "name": point_names[j], **error_stats(errors[:, j])})
+    per_point = [{"point_id": int(point_id[k]), "subject_id": int(subject_id[k]),
+                  "name": point_names[k], **error_stats(errors[:, k])} for k in range(p)]
+    robust = _robust_report(capture, result, subject_id, point_id, layout_names)
     full_report = {
         "images": n,
-        "points": p,
+        "points": num_layout,
+        "subjects": int(np.unique(subject_id).size),
         "streams": int(np.unique(capture.stream_ids).size),
         "observations": int(visible.sum()),
         "events": int(np.unique(result.events).size),
@@ -256,6 +348,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
             "per_point": per_point,
         },
         "event_summaries": _event_summaries(capture, result, errors),
+        "subject_summaries": _subject_summaries(capture, result, errors, subject_id),
+        **robust,
     }
     full_report = _json_ready(full_report)
     with open(folder / "report.json", "w") as f:

@@ -108,6 +108,12 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
         "cost_history": np.asarray(result.cost_history, dtype=np.float64),
         "change_history": np.asarray(result.change_history, dtype=np.float64),
         "seconds": np.float64(result.seconds),
+        **{
+            k: np.asarray(v)
+            for k in ("subject_id", "point_id", "assignment", "outliers", "swaps")
+            if (v := getattr(result, k)) is not None and np.size(v)
+        },
+        **({"outlier_residual_px": result.outlier_residual_px} if result.outliers.size else {}),
     }
 
 

@@ -21,19 +21,21 @@ from .core.solver import reconstruct
 from .errors import InputError
 from .io import atomic_path
 from .keypoints import FORMATS, Layout, read_keypoints
-from .observations import build_capture
+from .observations import PERSON_MODES, build_capture
 
 logger = logging.getLogger("dloe_sfm")
 
 
 def _person(value: str) -> str | int:
-    """``--person``: ``largest`` or a detection index (0 = first person in each file)."""
-    if value == "largest":
+    """``--person``: ``largest``, ``all``, ``auto`` or a detection index (0 = first in a file)."""
+    if value in PERSON_MODES:
         return value
     try:
         index = int(value)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected 'largest' or an index, got {value!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"expected {', '.join(PERSON_MODES)} or an index, got {value!r}"
+        ) from None
     if index < 0:
         raise argparse.ArgumentTypeError(f"person index must be >= 0, got {index}")
     return index
@@ -43,20 +45,29 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
                 workspace: Workspace | None = None,
                 edges: np.ndarray | None = None, point_names: list[str] | None = None,
                 num_overlays: int = 4) -> list[Path]:
-    """Sequence, affinity and trajectory plots, plus reprojection overlays on ``num_overlays``
-    images spread over the estimated order when the workspace's image files exist."""
+    """Sequence, affinity, event and trajectory plots, plus reprojection overlays on
+    ``num_overlays`` images spread over the estimated order when the workspace's image files
+    exist. ``edges`` (E, 2) and ``point_names`` (P,) are the layout's (point ids); with several
+    subjects, skeletons and trajectories are drawn per subject."""
     from . import viz  # matplotlib / cv2 only when plotting
+    from .export import column_edges, column_ids, frame_file_stem, solved_capture
 
+    capture = solved_capture(capture, result)
+    subject_id, point_id = column_ids(result)
+    subjects = None if result.subject_id is None else subject_id
+    edges = column_edges(edges if edges is not None else [], subject_id, point_id)
     folder.mkdir(parents=True, exist_ok=True)
     written = [
         viz.plot_sequence(result, capture, folder / "sequence.png"),
         viz.plot_affinity(result, folder / "affinity.png"),
+        viz.plot_events(result, folder / "events.png"),
         viz.plot_trajectories(result.X, result.order, folder / "trajectories.png",
-                              point_names=point_names, observed=capture.visible),
+                              point_names=None if point_names is None else
+                              [point_names[j] for j in point_id],
+                              observed=capture.visible, subject_id=subjects),
     ]
     if workspace is None or workspace.image_dir is None or num_overlays <= 0:
         return written
-    from .export import frame_file_stem
 
     rays = capture.rays()
     picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
@@ -74,9 +85,9 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
         reprojected = workspace.project(name, result.X[i])
         rank = int(result.rank[i])
         written.append(viz.plot_reprojection(
-            image_path, observed, reprojected, edges if edges is not None else [],
+            image_path, observed, reprojected, edges,
             folder / "overlays" / f"{frame_file_stem(rank, name, capture.num_images)}.png",
-            title=f"{name} (rank {rank})",
+            title=f"{name} (rank {rank})", subject_id=subjects,
         ))
     return written
 
@@ -113,12 +124,15 @@ def export_reconstruction(out: Path, capture: Capture, result: Result, *,
     if error["mean"] is not None:
         logger.info("mean reprojection error %.3f px (median %.3f) over %d observations",
                     error["mean"], error["median"], error["count"])
+    logger.info("%d subject(s); robust loss: %d observation(s) down-weighted, %d left/right "
+                "swap(s) fixed (report.json)", summary["subjects"],
+                summary["downweighted"]["count"], summary["swaps_fixed"]["count"])
     return summary
 
 
 def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
          stream_pattern: str | None = None, min_score: float = 0.0,
-         person: str | int = "largest", config: Path | None = None,
+         person: str | int = "auto", config: Path | None = None,
          overrides: list[str] | None = None, options: Options | None = None,
          overwrite: bool = False, plots: bool = True) -> Path:
     """Workspace + keypoints -> capture -> DLOE -> ``out`` (INTERFACES.md section 4).
@@ -186,8 +200,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "searched in image names; default: one stream per COLMAP camera")
     parser.add_argument("--min-score", type=float, default=0.0,
                         help="ignore detections with a lower score (default 0)")
-    parser.add_argument("--person", type=_person, default="largest",
-                        help="person to follow: 'largest' (default) or a detection index")
+    parser.add_argument("--person", type=_person, default="auto", metavar="{largest,all,auto,N}",
+                        help="detections per image: 'largest' (bounding box) or index N (one "
+                             "person), 'all' (every detection with >= 1/4 of the points, "
+                             "several subjects), 'auto' (default: 'all' when >= 10%% of the "
+                             "images have several such detections, else 'largest')")
     parser.add_argument("--config", type=Path, help="TOML file of solver options")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override one solver option (repeatable)")

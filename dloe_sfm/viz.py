@@ -13,6 +13,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
+from .core import events as core_events
 from .core.capture import Capture
 from .core.result import Result
 from .io import atomic_path
@@ -110,11 +111,42 @@ def plot_affinity(result: Result, path: Path | str) -> Path:
     return _save(fig, path)
 
 
+def plot_events(result: Result, path: Path | str) -> Path:
+    """The images in a 2D spectral embedding of the affinity (``core.events``), coloured by
+    event; images of one event cluster, separate events fall apart."""
+    coords = core_events.spectral_coordinates(result.A, dim=2)
+    labels, counts = np.unique(result.events, return_counts=True)
+    cmap = colormaps["tab10" if labels.size <= 10 else "turbo"]
+    fig = _figure(figsize=(7.2, 6.2))
+    ax = fig.subplots()
+    for k, (event, count) in enumerate(zip(labels.tolist(), counts.tolist(), strict=True)):
+        idx = result.events == event
+        colour = cmap(k) if labels.size <= 10 else cmap(k / (labels.size - 1))
+        ax.scatter(coords[idx, 0], coords[idx, 1], s=14, color=colour,
+                   label=f"event {event} ({count} image{'s' * (count > 1)})")
+    ax.set_xlabel("spectral coordinate 1")
+    ax.set_ylabel("spectral coordinate 2")
+    ax.set_title(f"Spectral embedding of the affinity ({labels.size} "
+                 f"event{'s' * (labels.size > 1)}, N = {result.events.size})")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best", ncol=1 + labels.size // 12)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def _bgr(k: int) -> tuple[int, int, int]:
+    """OpenCV BGR colour of the k-th subject (tab10)."""
+    r, g, b = (round(255 * c) for c in colormaps["tab10"](k % 10)[:3])
+    return b, g, r
+
+
 def plot_reprojection(image_path: Path | str, observed: np.ndarray, reprojected: np.ndarray,
                       edges: np.ndarray | list[tuple[int, int]], path: Path | str, *,
-                      title: str | None = None, max_side: int = 1600) -> Path:
+                      title: str | None = None, max_side: int = 1600,
+                      subject_id: np.ndarray | None = None) -> Path:
     """Overlay on the image: observed keypoints (green dots), reprojected 3D points (red
-    crosses), their error lines (yellow) and the skeleton through the reprojected points.
+    crosses), their error lines (yellow) and the skeleton through the reprojected points
+    (one colour per subject when ``subject_id`` (P,) is given).
 
     observed (P, 2), reprojected (P, 2): COLMAP pixel coordinates (centre of the top-left pixel
     = (0.5, 0.5)); NaN rows are skipped. edges (E, 2) point indices. The image is cropped to the
@@ -152,7 +184,8 @@ def plot_reprojection(image_path: Path | str, observed: np.ndarray, reprojected:
     ok_obs = np.isfinite(obs).all(axis=1)
     for i, j in np.asarray(edges, dtype=np.int64).reshape(-1, 2):
         if ok_rep[i] and ok_rep[j]:
-            cv2.line(image, pt(rep[i]), pt(rep[j]), (255, 160, 60), thick, cv2.LINE_AA)
+            colour = (255, 160, 60) if subject_id is None else _bgr(int(subject_id[i]))
+            cv2.line(image, pt(rep[i]), pt(rep[j]), colour, thick, cv2.LINE_AA)
     for p in range(len(obs)):
         if ok_obs[p] and ok_rep[p]:
             cv2.line(image, pt(obs[p]), pt(rep[p]), (0, 230, 255), thick, cv2.LINE_AA)
@@ -187,23 +220,33 @@ def plot_reprojection(image_path: Path | str, observed: np.ndarray, reprojected:
 
 def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
                       points: list[int] | None = None, point_names: list[str] | None = None,
-                      observed: np.ndarray | None = None, max_points: int = 6) -> Path:
+                      observed: np.ndarray | None = None, max_points: int = 6,
+                      subject_id: np.ndarray | None = None) -> Path:
     """3D trajectories of a few points along the estimated order.
 
-    X (N, P, 3) world points, order (N,) image indices by estimated time, observed (N, P) bool.
-    By default the ``max_points`` points with the largest robust extent (5th-95th percentile)
-    among the most observed ones (seen in >= 80 % as many images as the best) are drawn; circles
-    mark the first image, squares the last. The view spans the 1st-99th percentiles of the drawn
-    positions: outliers beyond it are left out and counted in the title.
+    X (N, P, 3) world points, order (N,) image indices by estimated time, observed (N, P) bool,
+    subject_id (P,) int: the subject of every point (colour per subject, a line style per point).
+    By default the ``max_points`` points (split between subjects) with the largest robust extent
+    (5th-95th percentile) among the most observed ones of their subject (seen in >= 80 % as many
+    images as its best) are drawn; circles mark the first image, squares the last. The view
+    spans the 1st-99th percentiles of the drawn positions: outliers beyond it are left out and
+    counted in the title.
     """
     X = np.asarray(X, dtype=np.float64)[np.asarray(order)]
+    groups = np.zeros(X.shape[1], dtype=np.int64) if subject_id is None else subject_id
     if points is None:
         spread = np.nanpercentile(X, 95, axis=0) - np.nanpercentile(X, 5, axis=0)  # (P, 3)
         score = np.nan_to_num(np.linalg.norm(spread, axis=1))
-        if observed is not None:
-            seen = np.asarray(observed).sum(axis=0)
-            score[seen < 0.8 * seen.max()] = -1.0
-        points = sorted(np.argsort(-score)[:max_points].tolist())
+        seen = None if observed is None else np.asarray(observed).sum(axis=0)
+        per_group = max(1, max_points // np.unique(groups).size)
+        points = []
+        for g in np.unique(groups):
+            members = np.flatnonzero(groups == g)
+            ranked = score[members].copy()
+            if seen is not None:
+                ranked[seen[members] < 0.8 * seen[members].max()] = -1.0
+            points += members[np.argsort(-ranked)[:per_group]].tolist()
+        points = sorted(points)
     tracks = X[:, points].copy()  # (N, k, 3)
     finite = tracks[np.isfinite(tracks).all(axis=2)]
     outliers = 0
@@ -217,14 +260,20 @@ def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
     fig = _figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
     cmap = colormaps["tab10"]
+    subjects = np.unique(groups).tolist()
     for k, p in enumerate(points):
         track = tracks[:, k]
         valid = np.flatnonzero(np.isfinite(track).all(axis=1))
         if not valid.size:
             continue
         label = point_names[p] if point_names is not None else f"point {p}"
+        style = "-"
         colour = cmap(k % 10)
-        ax.plot(*track.T, "-", color=colour, lw=1.3, label=label)
+        if subject_id is not None:
+            label = f"subject {groups[p]}: {label}"
+            colour = cmap(subjects.index(groups[p]) % 10)
+            style = ("-", "--", ":", "-.")[int(np.sum(groups[points[:k]] == groups[p])) % 4]
+        ax.plot(*track.T, style, color=colour, lw=1.3, label=label)
         ax.scatter(*track[valid[0]], color=colour, marker="o", s=40)
         ax.scatter(*track[valid[-1]], color=colour, marker="s", s=40)
     if len(finite):

@@ -116,7 +116,8 @@ def test_trajectories_npz_and_csv(exported) -> None:
         np.testing.assert_array_equal(data["events"], result.events)
     with open(out / "trajectories.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert list(rows[0]) == ["rank", "image", "point_id", "x", "y", "z", "observed"]
+    assert list(rows[0]) == ["rank", "image", "point_id", "x", "y", "z", "observed", "subject_id"]
+    assert {row["subject_id"] for row in rows} == {"0"}
     assert len(rows) == capture.num_images * P
     index = {name: i for i, name in enumerate(capture.image_names)}
     for row in rows:

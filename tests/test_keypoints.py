@@ -295,7 +295,7 @@ def test_build_capture_streams_people_and_scores(ws, tmp_path) -> None:
     small = f"{names[0]},0,1.0,1.0,1.0,1\n{names[0]},1,2.0,2.0,1.0,1\n"
     kp = read_keypoints("csv", projected_csv(ws, tmp_path / "kp.csv", X, names, small),
                         workspace=ws)
-    capture = build_capture(ws, kp)
+    capture = build_capture(ws, kp, person="largest")
     assert list(capture.image_names) == names
     np.testing.assert_array_equal(capture.stream, [0] * 4 + [1] * 4 + [-1])
     np.testing.assert_array_equal(capture.frame, [0, 1, 2, 3, 0, 1, 2, 3, 0])
@@ -305,18 +305,19 @@ def test_build_capture_streams_people_and_scores(ws, tmp_path) -> None:
     scores = 0.5 + 0.1 * ((np.arange(len(names))[:, None] + np.arange(6)) % 5)
     np.testing.assert_allclose(capture.confidence, scores)
     # min_score drops the low scores; person 1 is the small one
-    capture = build_capture(ws, kp, min_score=0.65)
+    capture = build_capture(ws, kp, min_score=0.65, person="largest")
     np.testing.assert_array_equal(capture.visible, scores >= 0.65)
     np.testing.assert_array_equal(np.isnan(capture.x[..., 0]), scores < 0.65)
     with pytest.raises(InputError, match=r"point\(s\) 'p2', 'p3', 'p4', 'p5' observed in no"):
         build_capture(ws, kp, person=1)
-    capture = build_capture(ws, kp, stream_pattern=r"camera0*(?P<stream>\d+)_frame(?P<frame>\d+)")
+    capture = build_capture(ws, kp, person="largest",
+                            stream_pattern=r"camera0*(?P<stream>\d+)_frame(?P<frame>\d+)")
     np.testing.assert_array_equal(capture.stream, [0] * 4 + [1] * 4 + [-1])
     with pytest.raises(InputError, match="does not match stream pattern"):
         build_capture(ws, kp, stream_pattern=r"cam(?P<stream>\d)_(?P<frame>\d+)")
     with pytest.raises(InputError, match="needs named groups"):
         build_capture(ws, kp, stream_pattern=r"camera(\d+)")
-    with pytest.raises(InputError, match="person must be 'largest' or an index"):
+    with pytest.raises(InputError, match="person must be 'largest', 'all', 'auto' or an index"):
         build_capture(ws, kp, person="tallest")
 
 

@@ -118,7 +118,7 @@ def test_outputs_are_complete(scene, reconstructed) -> None:
     assert report["inputs"]["format"] == "openpose" and report["layout"] == "COCO_18"
     assert report["images"] == 60 and report["points"] == 18
     assert report["reprojection_error_px"]["all"]["median"] < 1.0
-    for png in ("sequence.png", "affinity.png", "trajectories.png"):
+    for png in ("sequence.png", "affinity.png", "events.png", "trajectories.png"):
         assert (reconstructed / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -9,19 +9,23 @@ import numpy as np
 from ..errors import InputError
 
 REQUIRED_KEYS = ("x", "K", "R", "C")
-OPTIONAL_KEYS = ("stream", "frame", "confidence", "image_names")
+OPTIONAL_KEYS = ("stream", "frame", "confidence", "image_names", "symmetric_pairs")
 
 
 @dataclass(kw_only=True)
 class Capture:
     """P dynamic points seen in N images, each image one camera at one unknown instant.
 
+    With several subjects (people) per image, ``x`` is (N, M, P, 2): M detections per image in
+    no particular order (NaN = absent), ``confidence`` (N, M, P); :func:`dloe_sfm.reconstruct`
+    then associates the detections into subjects (``core.multitarget``).
+
     Projection: ``x ~ K R (X - C)``, pixel (0, 0) = centre of the top-left pixel's corner
     convention of the capture file (INTERFACES.md section 1).
 
     Attributes
     ----------
-    x : (N, P, 2) float
+    x : (N, P, 2) or (N, M, P, 2) float
         Pixel coordinates; NaN = not observed.
     K : (N, 3, 3) float
         Pinhole intrinsics (pixels already undistorted).
@@ -33,9 +37,11 @@ class Capture:
         Stream (video / camera) id; -1 = lone photo (each becomes a stream of its own).
     frame : (N,) int
         Frame index inside its stream (compared only within a stream).
-    confidence : (N, P) float or None
+    confidence : (N, P) or (N, M, P) float or None
         Detector scores in [0, 1]; 0 / NaN = not observed. Used as observation weights.
     image_names : (N,) str
+    symmetric_pairs : (K, 2) int or None
+        Left/right point pairs (e.g. shoulders) a detector may swap; the solver checks them.
     """
 
     x: np.ndarray
@@ -46,6 +52,7 @@ class Capture:
     frame: np.ndarray | None = None
     confidence: np.ndarray | None = None
     image_names: np.ndarray | None = None
+    symmetric_pairs: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -53,7 +60,7 @@ class Capture:
         self.K = np.asarray(self.K, dtype=np.float64)
         self.R = np.asarray(self.R, dtype=np.float64)
         self.C = np.asarray(self.C, dtype=np.float64)
-        n = self.x.shape[0] if self.x.ndim == 3 else 0
+        n = self.x.shape[0] if self.x.ndim in (3, 4) else 0
         if self.stream is None:
             self.stream = np.full(n, -1, dtype=np.int64)
         if self.frame is None:
@@ -65,6 +72,8 @@ class Capture:
         if self.image_names is None:
             self.image_names = np.array([f"image_{i:05d}" for i in range(n)])
         self.image_names = np.asarray(self.image_names).astype(str)
+        if self.symmetric_pairs is not None:
+            self.symmetric_pairs = np.asarray(self.symmetric_pairs).astype(np.int64).reshape(-1, 2)
 
     @property
     def num_images(self) -> int:
@@ -72,14 +81,21 @@ class Capture:
 
     @property
     def num_points(self) -> int:
-        return self.x.shape[1]
+        return self.x.shape[-2]
+
+    @property
+    def num_people(self) -> int:
+        """M, the detections per image of a several-subject capture (1 for (N, P, 2) ``x``)."""
+        return self.x.shape[1] if self.x.ndim == 4 else 1
 
     def validate(self, source: str = "capture") -> Capture:
         """Check shapes, finiteness and solvability; raise InputError naming the field."""
         x, K, R, C = self.x, self.K, self.R, self.C
-        if x.ndim != 3 or x.shape[2] != 2:
-            raise InputError(f"{source}: field 'x' must have shape (N, P, 2), got {x.shape}")
-        n, p = x.shape[:2]
+        if x.ndim not in (3, 4) or x.shape[-1] != 2:
+            raise InputError(
+                f"{source}: field 'x' must have shape (N, P, 2) or (N, M, P, 2), got {x.shape}"
+            )
+        n, p = x.shape[0], x.shape[-2]
         if n < 2 or p < 1:
             raise InputError(
                 f"{source}: field 'x' needs at least 2 images and 1 point, got {x.shape}"
@@ -120,16 +136,23 @@ class Capture:
                 raise InputError(
                     f"{source}: field '{name}' must have shape ({n},), got {arr.shape}"
                 )
-        if self.confidence is not None and self.confidence.shape != (n, p):
+        if self.confidence is not None and self.confidence.shape != x.shape[:-1]:
             raise InputError(
-                f"{source}: field 'confidence' must have shape ({n}, {p}), "
+                f"{source}: field 'confidence' must have shape {x.shape[:-1]}, "
                 f"got {self.confidence.shape}"
             )
-        visible = self.visible
-        empty = ~visible.any(axis=1)
+        pairs = self.symmetric_pairs
+        if pairs is not None and pairs.size and (
+            (pairs < 0).any() or (pairs >= p).any() or (pairs[:, 0] == pairs[:, 1]).any()
+        ):
+            raise InputError(
+                f"{source}: field 'symmetric_pairs' must pair two different points in 0..{p - 1}"
+            )
+        visible = self.visible.reshape(n, -1, p)
+        empty = ~visible.any(axis=(1, 2))
         if empty.any():
             raise InputError(f"{source}: image {self._name(np.argmax(empty))} observes no point")
-        never = ~visible.any(axis=0)
+        never = ~visible.any(axis=(0, 1))
         if never.any():
             raise InputError(f"{source}: point {int(np.argmax(never))} is observed in no image")
         streams = self.stream_ids
@@ -149,8 +172,8 @@ class Capture:
 
     @property
     def visible(self) -> np.ndarray:
-        """(N, P) bool: observed, finite and with positive confidence where given."""
-        vis = np.isfinite(self.x).all(axis=2)
+        """(N, P) (or (N, M, P)) bool: observed, finite and with positive confidence."""
+        vis = np.isfinite(self.x).all(axis=-1)
         if self.confidence is not None:
             conf = np.nan_to_num(self.confidence, nan=0.0)
             vis &= conf > 0
@@ -158,7 +181,7 @@ class Capture:
 
     @property
     def weights(self) -> np.ndarray:
-        """(N, P) float observation weights: confidence where given, 1 otherwise; 0 = unobserved."""
+        """(N, P) (or (N, M, P)) observation weights: confidence where given, else 1; 0 = unseen."""
         w = self.visible.astype(np.float64)
         if self.confidence is not None:
             w *= np.clip(np.nan_to_num(self.confidence, nan=0.0), 0.0, 1.0)
@@ -189,6 +212,7 @@ class Capture:
             frame=self.frame[idx],
             confidence=None if self.confidence is None else self.confidence[idx],
             image_names=self.image_names[idx],
+            symmetric_pairs=self.symmetric_pairs,
             extras={
                 k: v[idx]
                 for k, v in self.extras.items()

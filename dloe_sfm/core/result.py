@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from .capture import Capture
+
 
 @dataclass(kw_only=True)
 class Result:
@@ -38,6 +40,22 @@ class Result:
         Wall time of the solve.
     timings : dict
         Seconds spent per stage (init, w_step, d_step, x_step, sequencing, ...).
+    scale : float
+        The normalisation length (median camera-to-scene distance, world units).
+    subject_id, point_id : (P',) int or None
+        With several subjects: column k of X is point ``point_id[k]`` of subject
+        ``subject_id[k]`` (P' = subjects x P). None for one subject.
+    assignment : (N, M) int or None
+        With several subjects: the subject of detection m of image n (-1 = none).
+    outliers : (K, 2) int
+        (image, column of X) of the observations the robust loss rejected...
+    outlier_residual_px : (K,) float
+        ...and their distance in pixels from what the rest of the solution predicts there.
+    swaps : (K, 3) int
+        (image, column a, column b): left/right detections found swapped and exchanged.
+    solved : Capture or None
+        The (N, P', 2) observations X refers to (subjects aggregated, swaps undone); None when
+        that is the input capture itself.
     """
 
     X: np.ndarray
@@ -55,6 +73,13 @@ class Result:
     seconds: float
     timings: dict = field(default_factory=dict)
     scale: float = 1.0
+    subject_id: np.ndarray | None = None
+    point_id: np.ndarray | None = None
+    assignment: np.ndarray | None = None
+    outliers: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    outlier_residual_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    swaps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
+    solved: Capture | None = None
 
     @property
     def rank(self) -> np.ndarray:

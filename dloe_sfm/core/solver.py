@@ -134,7 +134,9 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
 def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
     """(N,) event labels from one W-step with shape-space candidates on the initial shapes.
 
-    An event seen by fewer than two streams cannot be triangulated; it joins the largest event.
+    The graph is W_var alone: the chain prior would tie the last image of one event to the
+    first of the next in every stream. An event seen by fewer than two streams cannot be
+    triangulated; it joins the largest event.
     """
     origin, scale = normalisation(capture, X_world)
     prob = build_problem(capture, options, origin, scale)
@@ -152,7 +154,7 @@ def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> n
         lambda3=options.lambda3,
         ridge=options.ridge,
     )
-    labels = segment_events(full_weights(W_var, prob))
+    labels = segment_events(W_var, capture.stream, capture.frame)
     sizes = np.bincount(labels)
     for e in range(labels.max() + 1):
         if np.unique(prob.streams[labels == e]).size < 2:
@@ -354,7 +356,7 @@ def _solve(
         A=A,
         W=W,
         D=D,
-        events=segment_events(A),
+        events=segment_events(A, capture.stream, capture.frame),
         embedding=f * scale,
         cost_history=np.array(st.costs),
         change_history=np.array(st.changes),

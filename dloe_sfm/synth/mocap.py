@@ -111,6 +111,84 @@ def ring_cameras(
     return np.repeat(K[None], num, axis=0), R, C
 
 
+def _window(seq: MocapSequence, s: SimulationSettings) -> np.ndarray:
+    """The (T, J, 3) frames of ``seq`` between ``s.start`` and ``s.start + s.duration``."""
+    pos = seq.positions
+    first = int(round(s.start * seq.fps))
+    last = pos.shape[0] if s.duration is None else min(
+        pos.shape[0], first + int(round(s.duration * seq.fps))
+    )
+    if last - first < 2:
+        raise InputError(f"{seq.name}: the chosen window has fewer than 2 frames")
+    return pos[first:last]
+
+
+def _ring_radius(s: SimulationSettings, points: np.ndarray, centre: np.ndarray) -> float:
+    if s.radius is not None:
+        return s.radius
+    return max(3.0, float(np.linalg.norm((points - centre)[:, [0, 2]], axis=1).max()) + 2.0)
+
+
+def _stream_samples(
+    span: float, period: float, s: SimulationSettings, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, stream, frame) of streams sampling [0, ``span``] (mocap frames) every ``period``
+    with start offsets k / num_streams of a period, minus ``s.drop`` of the images."""
+    times, streams, frames = [], [], []
+    for k in range(s.num_streams):
+        t = k * period / s.num_streams + period * np.arange(int(span / period) + 1)
+        t = t[t <= span]
+        times.append(t)
+        streams.append(np.full(t.size, k))
+        frames.append(np.arange(t.size))
+    t, stream, frame = (np.concatenate(v) for v in (times, streams, frames))
+    if s.drop > 0:
+        keep = rng.random(t.size) >= s.drop
+        t, stream, frame = t[keep], stream[keep], frame[keep]
+    return t, stream, frame
+
+
+def _interpolate(pos: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation of (T, J, 3) at fractional frames ``t`` (rates not dividing fps)."""
+    lo = np.clip(np.floor(t).astype(int), 0, pos.shape[0] - 1)
+    hi = np.minimum(lo + 1, pos.shape[0] - 1)
+    a = (t - lo)[:, None, None]
+    return (1 - a) * pos[lo] + a * pos[hi]
+
+
+def _render(
+    X_true: np.ndarray,
+    stream: np.ndarray,
+    frame: np.ndarray,
+    centre: np.ndarray,
+    radius: float,
+    s: SimulationSettings,
+    rng: np.random.Generator,
+    extras: dict,
+) -> Capture:
+    """Project (N, ..., 3) points into the ring's cameras with noise and missing points."""
+    K1, R1, C1 = ring_cameras(
+        centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
+    )
+    K, R, C = K1[stream], R1[stream], C1[stream]
+    n = X_true.shape[0]
+    x_clean = project(X_true.reshape(n, -1, 3), K, R, C).reshape(*X_true.shape[:-1], 2)
+    x = x_clean + s.noise * rng.standard_normal(x_clean.shape)
+    if s.missing > 0:
+        flat = x.reshape(n, -1, 2)
+        p = flat.shape[1]
+        gone = rng.random((n, p)) < s.missing
+        gone[np.arange(n), rng.integers(0, p, n)] = False  # every image keeps a point
+        gone[rng.integers(0, n, p), np.arange(p)] = False  # every point stays seen somewhere
+        flat[gone] = np.nan
+    names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=True)])
+    return Capture(
+        x=x, K=K, R=R, C=C, stream=stream, frame=frame, image_names=names,
+        extras={"X_true": X_true, "x_clean": x_clean, "settings": np.array(str(asdict(s))),
+                **extras},
+    )
+
+
 def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> Capture:
     """Sample ``seq`` with unsynchronised streams; ground truth in ``extras``.
 
@@ -120,69 +198,9 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     """
     s = settings or SimulationSettings()
     rng = np.random.default_rng(s.seed)
-    pos = seq.positions
-    first = int(round(s.start * seq.fps))
-    last = (
-        pos.shape[0]
-        if s.duration is None
-        else min(pos.shape[0], first + int(round(s.duration * seq.fps)))
-    )
-    if last - first < 2:
-        raise InputError(f"{seq.name}: the chosen window has fewer than 2 frames")
-    period = seq.fps / s.rate
-    window = pos[first:last].reshape(-1, 3)
-    centre = window.mean(axis=0)
-    radius = s.radius
-    if radius is None:
-        radius = max(3.0, float(np.linalg.norm((window - centre)[:, [0, 2]], axis=1).max()) + 2.0)
-    K1, R1, C1 = ring_cameras(
-        centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
-    )
-    times, streams, frames = [], [], []
-    for k in range(s.num_streams):
-        t = (
-            first
-            + k * period / s.num_streams
-            + period * np.arange(int((last - 1 - first) / period) + 1)
-        )
-        t = t[t <= last - 1]
-        times.append(t)
-        streams.append(np.full(t.size, k))
-        frames.append(np.arange(t.size))
-    t_idx = np.concatenate(times)
-    stream = np.concatenate(streams)
-    frame = np.concatenate(frames)
-    if s.drop > 0:
-        keep = rng.random(t_idx.size) >= s.drop
-        t_idx, stream, frame = t_idx[keep], stream[keep], frame[keep]
-    # linear interpolation between mocap samples at fractional instants (rates not dividing fps)
-    lo = np.floor(t_idx).astype(int)
-    hi = np.minimum(lo + 1, pos.shape[0] - 1)
-    a = (t_idx - lo)[:, None, None]
-    X_true = (1 - a) * pos[lo] + a * pos[hi]
-    K, R, C = K1[stream], R1[stream], C1[stream]
-    x_clean = project(X_true, K, R, C)
-    x = x_clean + s.noise * rng.standard_normal(x_clean.shape)
-    if s.missing > 0:
-        n, p = x.shape[:2]
-        gone = rng.random((n, p)) < s.missing
-        gone[np.arange(n), rng.integers(0, p, n)] = False  # every image keeps a point
-        gone[rng.integers(0, n, p), np.arange(p)] = False  # every point stays seen somewhere
-        x[gone] = np.nan
-    names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=False)])
-    return Capture(
-        x=x,
-        K=K,
-        R=R,
-        C=C,
-        stream=stream,
-        frame=frame,
-        image_names=names,
-        extras={
-            "X_true": X_true,
-            "t_true": t_idx / seq.fps,
-            "x_clean": x_clean,
-            "parents": seq.parents,
-            "settings": np.array(str(asdict(s))),
-        },
-    )
+    pos = _window(seq, s)
+    centre = pos.reshape(-1, 3).mean(axis=0)
+    radius = _ring_radius(s, pos.reshape(-1, 3), centre)
+    t, stream, frame = _stream_samples(pos.shape[0] - 1, seq.fps / s.rate, s, rng)
+    extras = {"t_true": (t + round(s.start * seq.fps)) / seq.fps, "parents": seq.parents}
+    return _render(_interpolate(pos, t), stream, frame, centre, radius, s, rng, extras)

@@ -1,0 +1,171 @@
+"""Harder captures built from the mocap protocol: several events, several people, detector errors.
+
+- :func:`simulate_events`: clips of different motions filmed one after another by the same
+  streams (frame numbers run on through the gaps between clips).
+- :func:`simulate_people`: several people in the same images, the detections of every image in
+  a random order (a detector knows no identities).
+- :func:`add_outliers` and :func:`swap_symmetric`: wrong detections and left/right swaps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.capture import Capture
+from ..errors import InputError
+from .mocap import (
+    MocapSequence,
+    SimulationSettings,
+    _interpolate,
+    _render,
+    _ring_radius,
+    _stream_samples,
+    _window,
+)
+
+
+def _centred(pos: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """``pos`` moved horizontally (x, z) so its mean sits at ``at`` (height kept)."""
+    shift = at - pos.reshape(-1, 3).mean(axis=0)
+    shift[1] = 0.0
+    return pos + shift
+
+
+def _same_rate(seqs: list[MocapSequence]) -> float:
+    fps = {s.fps for s in seqs}
+    joints = {s.positions.shape[1] for s in seqs}
+    if len(fps) != 1 or len(joints) != 1:
+        raise InputError("sequences to mix need the same frame rate and number of joints")
+    return fps.pop()
+
+
+def simulate_events(
+    seqs: list[MocapSequence], settings: SimulationSettings | None = None, *, gap: float = 2.0
+) -> Capture:
+    """The clips of ``seqs`` one after another, ``gap`` seconds apart, seen by one camera ring.
+
+    Each clip is moved to the ring's centre. ``extras`` as :func:`simulate` plus ``event_true``
+    (N,) the clip of every image.
+    """
+    s = settings or SimulationSettings()
+    rng = np.random.default_rng(s.seed)
+    fps = _same_rate(seqs)
+    clips = [_centred(_window(q, s), np.zeros(3)) for q in seqs]
+    starts = np.cumsum([0.0] + [c.shape[0] + gap * fps for c in clips[:-1]])
+    span = starts[-1] + clips[-1].shape[0] - 1
+    t, stream, frame = _stream_samples(span, fps / s.rate, s, rng)
+    event = np.full(t.size, -1)
+    X = np.empty((t.size, clips[0].shape[1], 3))
+    for k, (clip, t0) in enumerate(zip(clips, starts, strict=True)):
+        inside = (t >= t0) & (t <= t0 + clip.shape[0] - 1)
+        event[inside] = k
+        X[inside] = _interpolate(clip, t[inside] - t0)
+    keep = event >= 0
+    X, t, stream, frame, event = X[keep], t[keep], stream[keep], frame[keep], event[keep]
+    everything = np.concatenate([c.reshape(-1, 3) for c in clips])
+    radius = _ring_radius(s, everything, np.zeros(3))
+    extras = {"t_true": t / fps, "event_true": event, "parents": seqs[0].parents}
+    return _render(X, stream, frame, np.zeros(3), radius, s, rng, extras)
+
+
+def simulate_people(
+    seqs: list[MocapSequence],
+    settings: SimulationSettings | None = None,
+    *,
+    spacing: float = 2.0,
+    shuffle: bool = True,
+) -> Capture:
+    """One person per sequence, side by side ``spacing`` metres apart along x, in every image.
+
+    Returns a several-subject capture: ``x`` (N, S, P, 2) with the detections of every image in a
+    random order (``shuffle``). ``extras``: ``X_true`` (N, S, P, 3) by person, ``subject_true``
+    (N, S) the person of every detection slot, ``t_true`` (N,) seconds.
+    """
+    s = settings or SimulationSettings()
+    rng = np.random.default_rng(s.seed)
+    fps = _same_rate(seqs)
+    clips = [_window(q, s) for q in seqs]
+    length = min(c.shape[0] for c in clips)
+    offsets = (np.arange(len(seqs)) - (len(seqs) - 1) / 2) * spacing
+    clips = [
+        _centred(c[:length], np.array([dx, 0.0, 0.0])) for c, dx in zip(clips, offsets, strict=True)
+    ]
+    t, stream, frame = _stream_samples(length - 1, fps / s.rate, s, rng)
+    X = np.stack([_interpolate(c, t) for c in clips], axis=1)
+    everything = np.concatenate([c.reshape(-1, 3) for c in clips])
+    radius = _ring_radius(s, everything, np.zeros(3))
+    capture = _render(X, stream, frame, np.zeros(3), radius, s, rng,
+                      {"t_true": t / fps, "parents": seqs[0].parents})
+    slots = np.tile(np.arange(len(seqs)), (t.size, 1))
+    if shuffle:
+        slots = rng.permuted(slots, axis=1)
+    capture.x = np.take_along_axis(capture.x, slots[:, :, None, None], axis=1)
+    capture.extras["x_clean"] = np.take_along_axis(
+        capture.extras["x_clean"], slots[:, :, None, None], axis=1
+    )
+    capture.extras["subject_true"] = slots
+    return capture
+
+
+def symmetric_pairs(parents: np.ndarray) -> np.ndarray:
+    """(K, 2) left/right joint pairs of a skeleton tree: the joints of sibling subtrees of the
+    same shape (two legs under the pelvis, two arms under the chest), matched depth first."""
+    parents = np.asarray(parents)
+    children = [np.flatnonzero(parents == j).tolist() for j in range(parents.size)]
+
+    def shape(j: int) -> tuple:
+        return tuple(sorted(shape(c) for c in children[j]))
+
+    def preorder(j: int) -> list[int]:
+        return [j] + [i for c in sorted(children[j], key=shape) for i in preorder(c)]
+
+    pairs = []
+    for kids in children:
+        by_shape: dict[tuple, list[int]] = {}
+        for c in kids:
+            by_shape.setdefault(shape(c), []).append(c)
+        for twins in by_shape.values():
+            if len(twins) == 2:
+                pairs += zip(preorder(twins[0]), preorder(twins[1]), strict=True)
+    return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
+
+
+def add_outliers(
+    capture: Capture, fraction: float, *, low: float = 20.0, high: float = 100.0, seed: int = 0
+) -> Capture:
+    """A copy with ``fraction`` of the observations moved ``low``-``high`` pixels in a random
+    direction (wrong detections); ``extras["outlier_true"]`` marks them."""
+    rng = np.random.default_rng(seed)
+    x = capture.x.copy()
+    seen = np.isfinite(x).all(axis=-1)
+    hit = seen & (rng.random(seen.shape) < fraction)
+    angle = rng.uniform(0, 2 * np.pi, hit.sum())
+    length = rng.uniform(low, high, hit.sum())
+    x[hit] += length[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    out = capture.subset(np.arange(capture.num_images))
+    out.x = x
+    out.extras = {**capture.extras, "outlier_true": hit}
+    return out
+
+
+def swap_symmetric(
+    capture: Capture, pairs: np.ndarray, fraction: float, *, seed: int = 0
+) -> Capture:
+    """A copy where every (image, pair) of two observed points is swapped with probability
+    ``fraction`` (a detector confusing left and right); ``extras["swap_true"]`` (N, K) marks
+    them and ``symmetric_pairs`` is set."""
+    rng = np.random.default_rng(seed)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    x = capture.x.copy()
+    seen = np.isfinite(x).all(axis=-1)
+    both = seen[..., pairs[:, 0]] & seen[..., pairs[:, 1]]
+    hit = both & (rng.random(both.shape) < fraction)
+    idx = np.nonzero(hit)
+    a, b = pairs[idx[-1], 0], pairs[idx[-1], 1]
+    head = idx[:-1]
+    x[(*head, a)], x[(*head, b)] = capture.x[(*head, b)], capture.x[(*head, a)]
+    out = capture.subset(np.arange(capture.num_images))
+    out.x = x
+    out.symmetric_pairs = pairs
+    out.extras = {**capture.extras, "swap_true": hit}
+    return out
