@@ -24,26 +24,57 @@ def symmetrised(A: sp.spmatrix) -> sp.csr_matrix:
     return G
 
 
-def spectral_coordinates(A: sp.spmatrix, dim: int = 2) -> np.ndarray:
-    """(N, dim) spectral embedding of the undirected graph of ``A``: the eigenvectors after the
-    trivial one of the normalised adjacency, scaled by D^-1/2 (random-walk coordinates).
+def _leading_eigenvectors(A: sp.spmatrix, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(N, k) leading eigenvectors of the normalised adjacency D^-1/2 G D^-1/2 of ``A``'s
+    undirected graph G (largest first), and D^-1/2.
 
-    Images of different components (or weakly linked parts) get clearly separated coordinates.
+    Solved per connected component (the matrix is block diagonal): every component has
+    eigenvalue 1, and Lanczos on the whole matrix would find one copy of a repeated eigenvalue.
     """
     G = symmetrised(A)
     n = G.shape[0]
     deg = np.asarray(G.sum(axis=1)).ravel()
     inv = 1.0 / np.sqrt(np.maximum(deg, 1e-12))
-    M = sp.diags(inv) @ G @ sp.diags(inv)
+    M = sp.csr_matrix(sp.diags(inv) @ G @ sp.diags(inv))
+    _, comp = connected_components(G, directed=False)
+    vals, vecs = [], []
+    for c in range(comp.max() + 1):
+        idx = np.flatnonzero(comp == c)
+        m, kc = idx.size, min(k, idx.size)
+        block = M[idx][:, idx]
+        if m <= 1500 or kc >= m - 1:
+            w, v = sla.eigh(block.toarray(), subset_by_index=[m - kc, m - 1])
+        else:
+            w, v = spla.eigsh(block, k=kc, which="LA", v0=np.sqrt(deg[idx] + 1e-12), tol=1e-8)
+        full = np.zeros((n, kc))
+        full[idx] = v
+        vals.append(w)
+        vecs.append(full)
+    vals, vecs = np.concatenate(vals), np.concatenate(vecs, axis=1)
+    top = np.argsort(-vals, kind="stable")[:k]
+    return vecs[:, top], inv
+
+
+def spectral_coordinates(A: sp.spmatrix, dim: int = 2) -> np.ndarray:
+    """(N, dim) spectral embedding of the undirected graph of ``A``: the eigenvectors after the
+    leading one of the normalised adjacency, scaled by D^-1/2 (random-walk coordinates).
+
+    Images of different components (or weakly linked parts) get clearly separated coordinates.
+    """
+    n = A.shape[0]
     k = min(dim + 1, n - 1)
-    if n <= 500:
-        vals, vecs = sla.eigh(M.toarray(), subset_by_index=[n - k, n - 1])
-    else:
-        vals, vecs = spla.eigsh(M, k=k, which="LA", v0=np.sqrt(deg + 1e-12), tol=1e-8)
-    vecs = vecs[:, np.argsort(-vals)] * inv[:, None]
+    vecs, inv = _leading_eigenvectors(A, k)
     out = np.zeros((n, dim))
-    out[:, : k - 1] = vecs[:, 1:k]
+    out[:, : k - 1] = vecs[:, 1:k] * inv[:, None]
     return out
+
+
+def cluster_coordinates(A: sp.spmatrix, k: int) -> np.ndarray:
+    """(N, k) rows of the k leading eigenvectors of the normalised adjacency, each scaled to
+    unit length (Ng, Jordan & Weiss): k groups of nodes with few links between them map near k
+    orthogonal directions, however their eigenspace came out (components share eigenvalue 1)."""
+    vecs, _ = _leading_eigenvectors(A, min(k, A.shape[0] - 1))
+    return vecs / np.maximum(np.linalg.norm(vecs, axis=1, keepdims=True), 1e-300)
 
 
 def stream_runs(streams: np.ndarray, frames: np.ndarray) -> np.ndarray:

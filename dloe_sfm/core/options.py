@@ -22,6 +22,14 @@ class Distance(str, Enum):
     EUCLIDEAN = "euclidean"  # plain distance between 3D shapes
 
 
+class RobustLoss(str, Enum):
+    """Robust loss on the ray term, applied by iterative reweighting."""
+
+    CAUCHY = "cauchy"  # weight 1 / (1 + (r / c)^2)
+    HUBER = "huber"  # weight min(1, c / r)
+    NONE = "none"  # plain least squares
+
+
 RAY_WEIGHT_SCALE = 4e-8
 """Calibrated on the mocap protocol (pipelines/targets): 2 px at f = 1000 gives lambda2 = 1e-2.
 It is the squared scale, in normalised units, of what the smoothness rows cannot explain."""
@@ -83,6 +91,18 @@ class Options:
     """Stop when the RMS change of X in one sweep falls below this (normalised units)..."""
     cost_tolerance: float = 1e-5
     """...or when the cost fell by less than this fraction over ``resequence_every`` sweeps."""
+    robust_loss: RobustLoss = RobustLoss.CAUCHY
+    """Loss on every observation's residual r: its pixel distance from what the solved graph
+    predicts there (``W X``) without it. Observations are reweighted and the capture re-solved."""
+    robust_scale_px: float | None = None
+    """Scale c of the robust loss, pixels; None: from the residuals, 4 sigma (sigma: their median
+    / 1.18, a 2D Gaussian's) but at least 3 px. Observations weighted below 1/2 (r > c for
+    Cauchy) are reported, and dropped with hard rays."""
+    robust_iterations: int = 3
+    """At most this many reweighted re-solves (stops earlier when nothing changes)."""
+    fix_swaps: bool = True
+    """Exchange left/right detections of the capture's ``symmetric_pairs`` that fit the graph's
+    prediction far better swapped."""
     segment_events: bool = True
     """Find temporally disjoint events first (components of a shape-space W on the initial
     shapes) and solve each on its own."""
@@ -96,6 +116,11 @@ class Options:
         if self.noise_px <= 0:
             return float("inf")
         return RAY_WEIGHT_SCALE * (focal_px / self.noise_px) ** 2
+
+    def __post_init__(self) -> None:
+        self.distance = Distance(self.distance)
+        self.embedding = Embedding(self.embedding)
+        self.robust_loss = RobustLoss(self.robust_loss)
 
     def replace(self, **changes) -> Options:
         """A copy with some options changed (unknown names raise ValueError)."""

@@ -13,8 +13,17 @@ from tqdm.auto import tqdm
 from .capture import Capture
 from .events import segment_events
 from .init import fill_missing, pseudo_triangulate
-from .options import Distance, Embedding, Options
+from .options import Distance, Embedding, Options, RobustLoss
 from .result import Result
+from .robust import (
+    apply_swaps,
+    find_swaps,
+    loss_scale,
+    loss_weights,
+    predicted,
+    residuals_px,
+    reweighted,
+)
 from .sequencing import (
     affine_time,
     distance_matrix,
@@ -53,7 +62,9 @@ def build_problem(capture: Capture, options: Options, origin: np.ndarray, scale:
     weights = capture.weights
     rays[weights <= 0] = np.nan
     streams = capture.stream_ids
-    view = np.nanmean(rays, axis=1)
+    view = np.nansum(rays, axis=1)
+    blind = ~np.isfinite(rays).all(axis=2).any(axis=1)
+    view[blind] = capture.R[blind, 2]  # no observation left (all rejected): the optical axis
     view /= np.linalg.norm(view, axis=1, keepdims=True)
     chain = chain_matrix(streams, capture.frame)
     has_chain = np.asarray(chain.sum(axis=1)).ravel() > 0
@@ -119,16 +130,83 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
     ``capture`` must be valid (``Capture.validate``). Returns a :class:`Result` in world units.
     With ``options.segment_events``, temporally disjoint events are found first (connected
     components of a W fitted in shape space to the initial shapes: time-line candidates would
-    bridge events) and each event is sequenced and reconstructed on its own.
+    bridge events) and each event is sequenced and reconstructed on its own. With a robust loss
+    (or symmetric pairs to check) the observations are then reweighted from the solution's
+    residuals and the capture re-solved (``_reweight``). A capture with several detections per
+    image goes to :func:`dloe_sfm.core.multitarget.reconstruct_subjects`.
     """
     options = options or Options()
+    if capture.x.ndim == 4:
+        from .multitarget import reconstruct_subjects
+
+        return reconstruct_subjects(capture, options)
     started = time.perf_counter()
     X_world = initialise(capture, options)
+    labels = np.zeros(capture.num_images, dtype=np.int64)
     if options.segment_events:
         labels = initial_events(capture, options, X_world)
-        if labels.max() > 0:
-            return _solve_events(capture, options, labels, started)
-    return _solve(capture, options, X_world, started)
+    init_seconds = time.perf_counter() - started
+    result = _solve_all(capture, options, labels, X_world)
+    result = _reweight(capture, options, labels, result)
+    result.timings["init"] += init_seconds
+    result.seconds = time.perf_counter() - started
+    return result
+
+
+def _solve_all(
+    capture: Capture, options: Options, labels: np.ndarray, X_world: np.ndarray | None
+) -> Result:
+    """One event: ``_solve`` from ``X_world``; several: ``_solve_events`` (each event then
+    initialised on its own unless a warm start ``X_world`` is given)."""
+    if labels.max() > 0:
+        return _solve_events(capture, options, labels, X_world)
+    return _solve(capture, options, X_world)
+
+
+def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Result) -> Result:
+    """Iteratively reweighted re-solves against wrong detections and left/right swaps.
+
+    Each round predicts every observation from the graph (``W X``), exchanges symmetric pairs
+    that fit far better swapped, weights every observation by the robust loss of its residual
+    (pixels), drops those weighted below 1/2 and re-solves from a fresh initialisation (one
+    from shapes bent by the outliers stays bent). Stops when no pair was swapped and the
+    rejected set changed by at most 0.1 % of the observations. ``result.outliers`` lists the
+    observations the final solve left out, ``result.swaps`` every exchange.
+    """
+    robust = options.robust_loss is not RobustLoss.NONE
+    pairs = capture.symmetric_pairs if options.fix_swaps else None
+    if not robust and (pairs is None or pairs.size == 0):
+        return result
+    swaps = np.zeros((0, 3), dtype=np.int64)
+    current, rejected = capture, np.zeros(capture.x.shape[:2], dtype=bool)
+    for it in range(options.robust_iterations + 1):
+        X_pred = predicted(result.W, result.X)
+        scale = loss_scale(residuals_px(current, X_pred), options.robust_scale_px)
+        new = find_swaps(current, X_pred, pairs, scale) if pairs is not None else swaps[:0]
+        if new.size:
+            current = apply_swaps(current, new)
+            swaps = np.concatenate([swaps, new])
+        res = residuals_px(current, X_pred)
+        weights = loss_weights(res, scale, options.robust_loss)
+        now = weights < 0.5
+        settled = (now != rejected).sum() <= 1e-3 * current.visible.sum()
+        if it == options.robust_iterations or (not new.size and settled):
+            break
+        rejected = now
+        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)",
+                    it + 1, len(new), int(rejected.sum()), float(np.median(scale)))
+        solved = reweighted(current, weights) if robust else current
+        previous = result
+        result = _solve_all(solved, options, labels, None)
+        result.nit += previous.nit
+        result.timings = {k: v + previous.timings.get(k, 0.0) for k, v in result.timings.items()}
+    if swaps.size:
+        result.solved = current
+    result.swaps = swaps
+    img, col = np.nonzero(rejected)
+    result.outliers = np.stack([img, col], axis=1).astype(np.int64)
+    result.outlier_residual_px = res[img, col]
+    return result
 
 
 def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
@@ -163,11 +241,11 @@ def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> n
     return labels
 
 
-def _solve_events(capture: Capture, options: Options, labels: np.ndarray, started: float) -> Result:
-    """Solve every event on its own and assemble one result (orders concatenated by event).
-
-    ``seconds`` counts from ``started``: the whole-capture initialisation and event detection too.
-    """
+def _solve_events(
+    capture: Capture, options: Options, labels: np.ndarray, X_world: np.ndarray | None = None
+) -> Result:
+    """Solve every event on its own (from ``X_world`` when given) and assemble one result
+    (orders concatenated by event)."""
     n, p = capture.num_images, capture.num_points
     X = np.empty((n, p, 3))
     embedding = np.empty(n)
@@ -177,7 +255,7 @@ def _solve_events(capture: Capture, options: Options, labels: np.ndarray, starte
     for e in range(int(labels.max()) + 1):
         idx = np.flatnonzero(labels == e)
         logger.info("event %d: %d images", e, idx.size)
-        r = _solve(capture.subset(idx), options)
+        r = _solve(capture.subset(idx), options, None if X_world is None else X_world[idx])
         results.append(r)
         X[idx], D[idx] = r.X, r.D
         embedding[idx] = r.embedding - r.embedding.min() + offset
@@ -204,7 +282,7 @@ def _solve_events(capture: Capture, options: Options, labels: np.ndarray, starte
         nit=sum(r.nit for r in results),
         success=all(r.success for r in results),
         message="; ".join(f"event {e}: {r.message}" for e, r in enumerate(results)),
-        seconds=time.perf_counter() - started,
+        seconds=sum(r.seconds for r in results),
         timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         scale=results[0].scale,
     )
@@ -311,14 +389,9 @@ def _alternate(
     return False, f"stopped after {budget} iterations"
 
 
-def _solve(
-    capture: Capture,
-    options: Options,
-    X_world: np.ndarray | None = None,
-    started: float | None = None,
-) -> Result:
-    """One event: init (unless given, then timed from ``started``), alternation, sequencing."""
-    t_start = time.perf_counter() if started is None else started
+def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None) -> Result:
+    """One event: init (unless given), alternation, sequencing."""
+    t_start = time.perf_counter()
     timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0}
     if X_world is None:
         X_world = initialise(capture, options)

@@ -1,0 +1,201 @@
+"""Several subjects in the same images (the paper's multi-target scenario, five steps).
+
+1. Every detection of every image becomes a proxy image of its own (same camera, one subject).
+2. DLOE's graph over all proxies, fitted in shape space to their initial shapes: a subject's
+   proxies combine each other's shapes, not another subject's, so each subject becomes an event.
+3. Association through the common source image: the proxies of one image are different
+   subjects, so they are split by a spectral clustering of the proxy graph whose assignment
+   step matches each image's proxies to distinct subjects (Hungarian, per image).
+4. Aggregation: each image's subjects form one shape of S x P points.
+5. DLOE over the original images with those shapes (streams, events, robust loss as usual).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .capture import Capture, project
+from .events import cluster_coordinates
+from .options import Options
+from .result import Result
+from .robust import predicted
+from .solver import build_problem, initialise, normalisation, reconstruct
+from .steps import select_candidates, w_step
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
+    """Step 1: (proxies, source image (N',), detection slot (N',)) of an (N, M, P, 2) capture.
+
+    Proxies are lone photos: a detector's slot order says nothing about identity, so no stream
+    order links them (two proxies of one static camera are never neighbours anyway: their
+    rays are parallel).
+    """
+    vis = capture.visible
+    source, slot = np.nonzero(vis.any(axis=2))
+    conf = capture.weights[source, slot]
+    names = np.array([f"{capture.image_names[n]}#{m}" for n, m in zip(source, slot, strict=True)])
+    proxies = Capture(
+        x=np.where(vis[source, slot][..., None], capture.x[source, slot], np.nan),
+        K=capture.K[source], R=capture.R[source], C=capture.C[source],
+        stream=np.full(source.size, -1), frame=np.zeros(source.size, dtype=np.int64),
+        confidence=conf, image_names=names,
+    )
+    return proxies, source, slot
+
+
+def proxy_graph(proxies: Capture, options: Options):
+    """Step 2: DLOE's W over the proxies, candidates and compactness in shape space."""
+    X_world = initialise(proxies, options)
+    origin, scale = normalisation(proxies, X_world)
+    prob = build_problem(proxies, options, origin, scale)
+    X = (X_world - origin) / scale
+    n = X.shape[0]
+    cand = select_candidates(
+        X.reshape(n, -1), prob, options.num_candidates, min_angle=options.min_ray_angle
+    )
+    return w_step(
+        X, np.ones(n), cand, prob,
+        lambda1=options.lambda1, lambda3=options.lambda3, ridge=options.ridge,
+    )
+
+
+def constrained_clusters(
+    F: np.ndarray, group: np.ndarray, k: int, *, max_iterations: int = 100
+) -> np.ndarray:
+    """k-means of the rows of F (N', d) where rows of one ``group`` take distinct clusters.
+
+    Seeds: the rows of the first group with k members (else farthest-point seeding); the
+    assignment step solves one small assignment problem per group.
+    """
+    groups = [np.flatnonzero(group == g) for g in np.unique(group)]
+    full = next((g for g in groups if g.size == k), None)
+    if full is not None:
+        centres = F[full].copy()
+    else:
+        centres = [F[0]]
+        for _ in range(k - 1):
+            d = np.min([((F - c) ** 2).sum(axis=1) for c in centres], axis=0)
+            centres.append(F[int(np.argmax(d))])
+        centres = np.array(centres)
+    labels = np.full(F.shape[0], -1)
+    for _ in range(max_iterations):
+        cost = ((F[:, None, :] - centres[None]) ** 2).sum(axis=2)
+        new = np.empty_like(labels)
+        for g in groups:
+            rows, cols = linear_sum_assignment(cost[g])
+            new[g[rows]] = cols
+        if (new == labels).all():
+            break
+        labels = new
+        for c in range(k):
+            if (labels == c).any():
+                centres[c] = F[labels == c].mean(axis=0)
+    return labels
+
+
+def associate(capture: Capture, options: Options) -> np.ndarray:
+    """Steps 1-3: (N, M) subject of every detection (-1: none), subjects numbered by first image.
+
+    The number of subjects is the most detections any image has. A subject with fewer than 8
+    images, or seen by one stream only, is a stray detection: it is dropped, except where it is
+    its image's only detection.
+    """
+    proxies, source, slot = proxy_capture(capture)
+    k = int(np.bincount(source).max())
+    assignment = np.full(capture.x.shape[:2], -1)
+    if k == 1:
+        assignment[source, slot] = 0
+        return assignment
+    W = proxy_graph(proxies, options)
+    F = cluster_coordinates(W, k)
+    labels = constrained_clusters(F, source, k)
+    streams = capture.stream_ids[source]
+    lonely = np.bincount(source)[source] == 1
+    for c in range(k):
+        members = labels == c
+        if members.sum() < 8 or np.unique(streams[members]).size < 2:
+            labels[members & ~lonely] = -1
+    kept = np.unique(labels[labels >= 0])
+    _, first = np.unique(labels, return_index=True)
+    ranked = kept[np.argsort([first[np.searchsorted(np.unique(labels), c)] for c in kept])]
+    remap = np.full(k, -1)
+    remap[ranked] = np.arange(ranked.size)
+    assignment[source, slot] = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+    return assignment
+
+
+def aggregate(capture: Capture, assignment: np.ndarray) -> Capture:
+    """Step 4: the (N, S P, 2) capture whose columns s P .. s P + P - 1 are subject s."""
+    n, _, p = capture.x.shape[:3]
+    s = int(assignment.max()) + 1
+    x = np.full((n, s, p, 2), np.nan)
+    conf = np.zeros((n, s, p))
+    img, det = np.nonzero(assignment >= 0)
+    x[img, assignment[img, det]] = capture.x[img, det]
+    conf[img, assignment[img, det]] = capture.weights[img, det]
+    pairs = capture.symmetric_pairs
+    if pairs is not None:
+        pairs = np.concatenate([pairs + k * p for k in range(s)])
+    return Capture(
+        x=x.reshape(n, s * p, 2), K=capture.K, R=capture.R, C=capture.C,
+        stream=capture.stream, frame=capture.frame, confidence=conf.reshape(n, s * p),
+        image_names=capture.image_names, symmetric_pairs=pairs,
+        extras={k: v for k, v in capture.extras.items() if k != "x_clean"},
+    )
+
+
+def reassociate(capture: Capture, assignment: np.ndarray, result: Result) -> np.ndarray:
+    """(N, M) assignment matched again to the solution: each image's assigned detections go to
+    the subjects whose graph prediction (``W X``, from the other images) they fit best, by the
+    mean pixel distance over their points (each capped at 50 px), one subject per detection."""
+    n, m, p = capture.x.shape[:3]
+    s = int(assignment.max()) + 1
+    X_pred = predicted(result.W, result.X).reshape(n, s, p, 3)
+    x_hat = np.stack(
+        [project(X_pred[:, k], capture.K, capture.R, capture.C) for k in range(s)], axis=1
+    )
+    d = np.linalg.norm(capture.x[:, :, None] - x_hat[:, None], axis=-1)  # (N, M, S, P)
+    vis = capture.visible[:, :, None, :]
+    cost = np.where(vis, np.minimum(np.nan_to_num(d, nan=50.0), 50.0), 0.0).sum(axis=-1)
+    cost /= np.maximum(vis.sum(axis=-1), 1)
+    out = assignment.copy()
+    for i in range(n):
+        dets = np.flatnonzero(assignment[i] >= 0)
+        rows, cols = linear_sum_assignment(cost[i, dets])
+        out[i, dets[rows]] = cols
+    return out
+
+
+def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3) -> Result:
+    """All five steps: a :class:`Result` over the S P columns of the aggregated capture, with
+    ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
+
+    The association is then checked against the solution (``reassociate``) and, where it
+    changed, aggregated and solved again, at most ``rounds`` times.
+    """
+    assignment = associate(capture, options)
+    s = int(assignment.max()) + 1
+    p = capture.num_points
+    logger.info("%d subject(s) in %d images (%d detections unassigned)", s,
+                capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
+    for it in range(rounds):
+        merged = aggregate(capture, assignment)
+        result = reconstruct(merged.validate("aggregated subjects"), options)
+        if s == 1 or it == rounds - 1:
+            break
+        new = reassociate(capture, assignment, result)
+        changed = int((new != assignment).any(axis=1).sum())
+        if not changed:
+            break
+        logger.info("association: %d image(s) changed, solving again", changed)
+        assignment = new
+    result.subject_id = np.repeat(np.arange(s), p)
+    result.point_id = np.tile(np.arange(p), s)
+    result.assignment = assignment
+    result.solved = result.solved if result.solved is not None else merged
+    return result
