@@ -101,12 +101,16 @@ def stream_runs(streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
     return runs
 
 
-def _normalised_cut(G: sp.csr_matrix) -> np.ndarray | None:
-    """Boolean side of the best normalised cut of connected ``G`` along its Fiedler vector, or
-    None unless that cut costs under 1 % of the smaller side's volume *and* under 0.5 % of the
-    median weight crossing the line's cuts. The second test keeps one event whole: its graph is
-    a long chain whose every cut is cheap relative to volume but about as heavy as the others
-    (at least 2 % of the median on the mocap protocol, also with lone photos)."""
+def _normalised_cut(G: sp.csr_matrix, size: np.ndarray) -> np.ndarray | None:
+    """Boolean side of the best normalised cut of connected ``G`` (nodes: runs of ``size``
+    images) along its Fiedler vector, or None when no cut is weak.
+
+    Between runs, weak is a cut under 5 % of the smaller side's volume: one event's runs are
+    linked all along their length (at least 31 % for 3 s clips on the mocap protocol, 12 % for
+    1 s clips; two events of similar poses 0.2-16 %). Lone photos (runs of one image) make an event a long chain whose
+    every cut is cheap relative to volume (0.1-0.5 %), so there a cut must also carry under
+    0.5 % of the median weight crossing the line's cuts (an event's own cuts: at least 2 %).
+    """
     n = G.shape[0]
     if n < 2:
         return None
@@ -123,7 +127,10 @@ def _normalised_cut(G: sp.csr_matrix) -> np.ndarray | None:
     vol = np.cumsum(deg)[:-1]
     ncut = cross / np.maximum(np.minimum(vol, deg.sum() - vol), 1e-300)
     k = int(np.argmin(ncut))
-    weak = ncut[k] < 0.01 and cross[k] < 0.005 * np.median(cross)
+    if (size > 1).any():
+        weak = ncut[k] < 0.05
+    else:
+        weak = ncut[k] < 0.01 and cross[k] < 0.005 * np.median(cross)
     return pos <= k if weak else None
 
 
@@ -139,7 +146,7 @@ def segment_events(
     With ``streams`` / ``frames`` the nodes are stream runs (``stream_runs``): a video keeps
     one event while it runs on, whatever its images' rows link to. Runs linked by less than 5 %
     of the smaller run's size are not linked; the connected components of what remains are cut
-    further while a normalised cut below 1 % exists (a few stray links between events). Labels
+    further while a weak normalised cut exists (``_normalised_cut``: stray links). Labels
     are numbered by the event's first image; events of fewer than ``min_size`` images join the
     largest.
     """
@@ -155,7 +162,7 @@ def segment_events(
     parts = []
     while pending:
         idx = pending.pop()
-        side = _normalised_cut(R[idx][:, idx])
+        side = _normalised_cut(R[idx][:, idx], size[idx])
         if side is None:
             parts.append(idx)
         else:

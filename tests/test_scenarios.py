@@ -1,0 +1,198 @@
+"""Several events, several people, wrong detections: the core on the simulator's hard cases."""
+
+import itertools
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.events import cluster_coordinates, segment_events, stream_runs
+from dloe_sfm.core.multitarget import constrained_clusters
+from dloe_sfm.core.options import Options, RobustLoss
+from dloe_sfm.core.robust import find_swaps, loss_weights
+from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.synth import SimulationSettings, load_mocap
+from dloe_sfm.synth.scenarios import (
+    add_outliers,
+    simulate_events,
+    simulate_people,
+    swap_symmetric,
+    symmetric_pairs,
+)
+
+MOTIONS = ("walking_1", "jumping_1", "basketball_signal_1")
+QUICK = SimulationSettings(duration=1.0, rate=15)
+
+
+@pytest.fixture(scope="module")
+def clips(assets_dir):
+    return {m: load_mocap(assets_dir / "mocap" / f"{m}.npz") for m in MOTIONS}
+
+
+def error_mm(X, X_true):
+    return float(np.linalg.norm(X - X_true, axis=-1).mean() * 1000)
+
+
+@pytest.fixture(scope="module")
+def walking(clips):
+    """One person, 1 s at 4 x 30 Hz, and its clean solve."""
+    cap = simulate_people([clips["walking_1"]], SimulationSettings(duration=1.0), shuffle=False)
+    cap = Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
+                  extras={"X_true": cap.extras["X_true"][:, 0]})
+    return cap, error_mm(reconstruct(cap).X, cap.extras["X_true"])
+
+
+def test_stream_runs_cut_where_a_video_stops():
+    streams = np.array([0] * 6 + [1] * 4 + [-1, -1])
+    frames = np.array([0, 1, 3, 4, 40, 41, 5, 6, 7, 8, 0, 0])
+    runs = stream_runs(streams, frames)
+    assert len(set(runs[:4])) == 1 and len(set(runs[4:6])) == 1 and runs[3] != runs[4]
+    assert len(set(runs[6:10])) == 1
+    assert len(set(runs)) == 5  # two runs of stream 0, one of stream 1, two lone photos
+
+
+def test_stray_links_do_not_join_two_events(rng):
+    """Two events filmed one after the other by the same 4 streams (frames run on, with a
+    gap), each image's row on 3 images of other streams of its own event, plus 3 stray links
+    between the events: a spectral cut splits them; a single event stays whole."""
+    per, streams_n = 20, 4
+    streams = np.tile(np.repeat(np.arange(streams_n), per), 2)
+    frames = np.tile(np.arange(per), 2 * streams_n) + np.repeat([0, 100], per * streams_n)
+    event = np.repeat([0, 1], per * streams_n)
+    n = streams.size
+    rows, cols = [], []
+    for i in range(n):
+        mates = np.flatnonzero((event == event[i]) & (streams != streams[i])
+                               & (np.abs(frames - frames[i]) <= 1))
+        pick = rng.choice(mates, 3, replace=False)
+        rows += [i] * 3
+        cols += pick.tolist()
+    A = sp.csr_matrix((np.full(len(rows), 1 / 3), (rows, cols)), shape=(n, n))
+    stray = sp.csr_matrix((np.ones(3), ([5, 25, 45], [85, 105, 125])), shape=(n, n))
+    labels = segment_events(A + stray, streams, frames)
+    assert np.array_equal(labels, event)
+    # lone photos: links under 5 % of a run's (one image's) weight do not count
+    assert np.unique(segment_events(A + 0.01 * stray)).size == 2
+    one = event == 0
+    whole = segment_events(sp.csr_matrix(A[one][:, one]), streams[one], frames[one])
+    assert np.unique(whole).size == 1
+
+
+def test_cluster_coordinates_separate_components():
+    blocks = [np.ones((k, k)) - np.eye(k) for k in (5, 7, 9)]
+    A = sp.block_diag(blocks).tocsr()
+    F = cluster_coordinates(A, 3)
+    groups = np.repeat([0, 1, 2], [5, 7, 9])
+    for g in range(3):
+        assert np.allclose(F[groups == g], F[groups == g][0], atol=1e-8)
+    centres = np.array([F[groups == g][0] for g in range(3)])
+    assert np.allclose(np.abs(centres @ centres.T), np.eye(3), atol=1e-8)
+
+
+def test_constrained_clusters_give_each_group_distinct_clusters(rng):
+    centres = np.array([[0.0, 0.0], [1.0, 0.0]])
+    truth = np.tile([0, 1], 50)
+    F = centres[truth] + 0.3 * rng.standard_normal((100, 2))
+    group = np.repeat(np.arange(50), 2)
+    labels = constrained_clusters(F, group, 2)
+    assert all(len(set(labels[group == g])) == 2 for g in range(50))
+    agree = (labels == truth).mean()
+    assert max(agree, 1 - agree) >= 0.95
+
+
+def test_loss_weights():
+    res = np.array([[0.0, 3.0, 30.0, np.nan]])
+    scale = np.full(4, 3.0)
+    assert np.allclose(loss_weights(res, scale, RobustLoss.CAUCHY), [1, 0.5, 1 / 101, 1])
+    assert np.allclose(loss_weights(res, scale, RobustLoss.HUBER), [1, 1, 0.1, 1])
+    assert np.allclose(loss_weights(res, scale, RobustLoss.NONE), 1)
+
+
+def test_find_swaps_on_an_exact_prediction(rng, clips):
+    seq = clips["walking_1"]
+    cap = simulate_people([seq], QUICK, shuffle=False)
+    X = cap.extras["X_true"][:, 0]
+    x = project(X, cap.K, cap.R, cap.C)
+    clean = Capture(x=x, K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame)
+    pairs = symmetric_pairs(seq.parents)
+    bad = swap_symmetric(clean, pairs, 0.2, seed=1)
+    found = find_swaps(bad, X, pairs, np.full(clean.num_points, 3.0))
+    hit = np.zeros_like(bad.extras["swap_true"])
+    for n, a, _ in found:
+        hit[n, np.flatnonzero(pairs[:, 0] == a)] = True
+    truth = bad.extras["swap_true"]
+    # a swap of two points that project within a few pixels of each other is harmless and kept
+    close = np.linalg.norm(x[:, pairs[:, 0]] - x[:, pairs[:, 1]], axis=2) < 5
+    assert not (hit & ~truth).any()
+    assert (hit == truth)[~close].all()
+
+
+def test_three_events_in_the_same_streams(clips):
+    seqs = [clips[m] for m in MOTIONS]
+    cap = simulate_events(seqs, QUICK)
+    r = reconstruct(cap)
+    truth = cap.extras["event_true"]
+    assert np.unique(r.events).size == 3
+    for e in np.unique(r.events):
+        assert np.unique(truth[r.events == e]).size == 1
+    # no edge of the graph joins two clips, though the streams' frames run through all three
+    A = r.A.tocoo()
+    assert (truth[A.row] == truth[A.col]).all()
+    first = np.flatnonzero(truth == 0)
+    alone = reconstruct(cap.subset(first))
+    assert error_mm(r.X[first], cap.extras["X_true"][first]) <= 1.2 * error_mm(
+        alone.X, cap.extras["X_true"][first]
+    )
+
+
+def test_two_people_are_associated_and_reconstructed(clips):
+    seqs = [clips["walking_1"], clips["jumping_1"]]
+    cap = simulate_people(seqs, QUICK)
+    truth = cap.extras["subject_true"]
+    assert (truth[:, 0] == 1).any() and (truth[:, 0] == 0).any()  # the order really is shuffled
+    r = reconstruct(cap)
+    assert r.X.shape == (cap.num_images, 2 * cap.num_points, 3)
+    perm = max(itertools.permutations(range(2)),
+               key=lambda q: (np.array(q)[r.assignment] == truth).mean())
+    assert (np.array(perm)[r.assignment] == truth).all(axis=1).mean() >= 0.98
+    slot_of = np.argsort(truth, axis=1)
+    for k in range(2):
+        person = perm[k]
+        alone = Capture(x=cap.x[np.arange(cap.num_images), slot_of[:, person]], K=cap.K,
+                        R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame)
+        solo = error_mm(reconstruct(alone).X, cap.extras["X_true"][:, person])
+        together = error_mm(r.X[:, r.subject_id == k], cap.extras["X_true"][:, person])
+        assert together <= 1.3 * solo
+        assert np.array_equal(r.point_id[r.subject_id == k], np.arange(cap.num_points))
+
+
+def test_outliers_are_rejected(walking):
+    cap, clean = walking
+    bad = add_outliers(cap, 0.05, seed=1)
+    plain = error_mm(reconstruct(bad, Options(robust_loss="none")).X, cap.extras["X_true"])
+    r = reconstruct(bad)
+    robust = error_mm(r.X, cap.extras["X_true"])
+    assert robust <= 1.25 * clean
+    assert plain >= 5 * clean
+    truth = bad.extras["outlier_true"]
+    found = np.zeros_like(truth)
+    found[tuple(r.outliers.T)] = True
+    assert (found & truth).sum() >= 0.95 * truth.sum()
+    assert (found & ~truth).sum() <= 0.5 * truth.sum()
+    assert (r.outlier_residual_px >= 3.0).all()
+
+
+def test_left_right_swaps_are_found(walking, clips):
+    cap, clean = walking
+    pairs = symmetric_pairs(clips["walking_1"].parents)
+    bad = swap_symmetric(cap, pairs, 0.1, seed=2)
+    r = reconstruct(bad)
+    truth = bad.extras["swap_true"]
+    undone = np.zeros(truth.shape, dtype=np.int64)
+    for n, a, _ in r.swaps:
+        undone[n, np.flatnonzero(pairs[:, 0] == a)] += 1
+    fixed = undone % 2 == 1
+    assert (fixed & truth).sum() >= 0.95 * truth.sum()
+    assert (fixed & ~truth).sum() <= 0.02 * truth.sum()
+    assert r.solved is not None and np.isfinite(r.solved.x).sum() == np.isfinite(bad.x).sum()
