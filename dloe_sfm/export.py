@@ -91,6 +91,22 @@ def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:
     return result.subject_id.astype(np.int64), result.point_id.astype(np.int64)
 
 
+def detection_subjects(capture: Capture, result: Result) -> np.ndarray | None:
+    """(N, M') subject of each detection of every image, in the order of the image's keypoint
+    list up to its last detection used (-1: not used, e.g. too few points or a stray), from
+    ``result.assignment``; None for one subject. ``capture`` is the solver's input: without
+    ``extras["detection_index"]`` (``observations.build_capture``) its slot order is the list's."""
+    if result.assignment is None:
+        return None
+    index = capture.extras.get("detection_index")
+    if index is None or index.shape != result.assignment.shape:
+        return result.assignment.astype(np.int64)
+    out = np.full((len(index), int(index.max()) + 1), -1, dtype=np.int64)
+    rows, slots = np.nonzero(index >= 0)
+    out[rows, index[rows, slots]] = result.assignment[rows, slots]
+    return out
+
+
 def column_edges(edges: np.ndarray, subject_id: np.ndarray, point_id: np.ndarray) -> np.ndarray:
     """(E', 2) skeleton edges between columns of X: the layout's (E, 2) edges between point ids,
     repeated for every subject (subject_id, point_id (P',) as from ``column_ids``)."""
@@ -243,10 +259,12 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
 
     ``capture`` is the solver's input; the observations written and scored are those of
     ``solved_capture``. With several subjects, column k of X is point ``result.point_id[k]`` of
-    subject ``result.subject_id[k]``: frames carry both ids, skeletons repeat per subject.
-    static_xyz (M, 3) float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries
-    (inputs, parameters, stage timings, ...) are merged into ``report.json``. Returns the report.
+    subject ``result.subject_id[k]``: frames carry both ids, skeletons repeat per subject, and
+    trajectories.npz has ``detection_subject`` (``detection_subjects``). static_xyz (M, 3)
+    float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries (inputs,
+    parameters, stage timings, ...) are merged into ``report.json``. Returns the report.
     """
+    detection_subject = detection_subjects(capture, result)
     capture = solved_capture(capture, result)
     _check_shapes(capture, result)
     folder = Path(folder)
@@ -301,7 +319,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
              image_names=names.astype(str), events=result.events.astype(np.int64),
              rank=rank.astype(np.int64), observed=visible, point_names=np.array(point_names),
              edges=edges, embedding=result.embedding, reprojection_error=errors,
-             **({"subject_id": subject_id, "point_id": point_id} if subjects else {}))
+             **({"subject_id": subject_id, "point_id": point_id} if subjects else {}),
+             **({} if detection_subject is None else {"detection_subject": detection_subject}))
 
     with open(folder / "trajectories.csv", "w", newline="") as f:
         writer = csv.writer(f)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import re
+from pathlib import PurePosixPath
 
 import numpy as np
 from tqdm import tqdm
@@ -36,12 +37,12 @@ def _usable(pts: np.ndarray, min_score: float) -> np.ndarray:
 
 
 def usable_people(people: np.ndarray, min_score: float) -> np.ndarray:
-    """(M', P, 3): the detections of (M, P, 3) ``people`` with at least a quarter of the points
-    usable (score >= ``min_score``), largest bounding box first."""
+    """(M',) int: indices of the detections of (M, P, 3) ``people`` with at least a quarter of
+    the points usable (score >= ``min_score``), largest bounding box first."""
     p = people.shape[1]
-    keep = [pts for pts in people if 4 * _usable(pts, min_score).sum() >= p]
-    keep.sort(key=lambda pts: -_box_area(pts, min_score))
-    return np.stack(keep) if keep else np.zeros((0, *people.shape[1:]))
+    keep = [m for m, pts in enumerate(people) if 4 * _usable(pts, min_score).sum() >= p]
+    keep.sort(key=lambda m: -_box_area(people[m], min_score))
+    return np.array(keep, dtype=np.int64)
 
 
 def _box_area(pts: np.ndarray, min_score: float) -> float:
@@ -52,17 +53,19 @@ def _box_area(pts: np.ndarray, min_score: float) -> float:
     return float(extent[0] * extent[1])
 
 
-def select_person(people: np.ndarray, person: str | int, min_score: float) -> np.ndarray | None:
-    """One person's (P, 3) points from (M, P, 3): index ``person`` or the ``"largest"`` bounding
-    box of points with score >= ``min_score``; None when there is no such person."""
+def person_index(people: np.ndarray, person: str | int, min_score: float) -> int | None:
+    """Index in (M, P, 3) ``people`` of index ``person`` or of the ``"largest"`` bounding box of
+    points with score >= ``min_score``; None when there is no such person."""
     if isinstance(person, int):
-        return people[person] if person < len(people) else None
-    best, best_area = None, -1.0
-    for pts in people:
-        area = _box_area(pts, min_score)
-        if area > best_area:
-            best, best_area = pts, area
-    return best
+        return person if person < len(people) else None
+    areas = [_box_area(pts, min_score) for pts in people]
+    return int(np.argmax(areas)) if areas and max(areas) >= 0 else None
+
+
+def select_person(people: np.ndarray, person: str | int, min_score: float) -> np.ndarray | None:
+    """One person's (P, 3) points from (M, P, 3), chosen as by ``person_index``."""
+    m = person_index(people, person, min_score)
+    return None if m is None else people[m]
 
 
 def _parse_person(person: str | int) -> str | int:
@@ -85,15 +88,23 @@ def _auto_person(kp: Keypoints, names: list[str], min_score: float) -> str:
     return mode
 
 
+def _file_number(name: str) -> int | None:
+    """The last digit run of an image's file name without suffix (``cam0/00012.jpg``: 12)."""
+    digits = re.findall(r"\d+", PurePosixPath(name).stem)
+    return int(digits[-1]) if digits else None
+
+
 def assign_streams(
     ws: Workspace, names: list[str], stream_pattern: str | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N,) stream and (N,) frame of images ``names`` (natural name order).
 
-    Default: images sharing a COLMAP camera id form a stream, frames numbered in name order.
-    ``stream_pattern``: a regex searched in each name with named groups ``stream`` and ``frame``
-    (frame: its integer value when all digits, else its rank in name order). A stream of one
-    image is a lone photo (-1).
+    Default: images sharing a COLMAP camera id form a stream, in name order; frames are the
+    last numbers of the file names (``cam0/00012.jpg``: 12) minus the stream's first when they
+    rise with the name order (so a video that stopped and restarted keeps its gap, which
+    separates events), else the ranks in name order. ``stream_pattern``: a regex searched in
+    each name with named groups ``stream`` and ``frame`` (frame: its integer value when all
+    digits, else its rank in name order). A stream of one image is a lone photo (-1).
     """
     if stream_pattern is None:
         labels: list[object] = [ws.camera_id(n) for n in names]
@@ -121,10 +132,14 @@ def assign_streams(
     for s in range(len(order)):
         idx = np.flatnonzero(stream == s)
         values = [frames_raw[i] for i in idx]
+        ranks = sorted(range(len(idx)), key=lambda k: natural_key(values[k]))
+        numbers = [_file_number(values[k]) for k in ranks]
         if stream_pattern is not None and all(v.isdigit() for v in values):
             frame[idx] = [int(v) for v in values]
+        elif (stream_pattern is None and None not in numbers
+              and all(a < b for a, b in zip(numbers, numbers[1:], strict=False))):
+            frame[idx[ranks]] = np.array(numbers) - numbers[0]
         else:
-            ranks = sorted(range(len(idx)), key=lambda k: natural_key(values[k]))
             frame[idx[ranks]] = np.arange(len(idx))
         if len(idx) == 1:
             stream[idx] = -1
@@ -169,8 +184,9 @@ def build_capture(
     x in the ideal pinhole ``ws.pinhole(name)`` (COLMAP pixel convention), NaN = missing
     (score below ``min_score``, or not undistortable); confidence (N, P) or (N, M, P) = score
     clipped to [0, 1], 0 where missing; streams as in ``assign_streams``; ``symmetric_pairs``
-    from the layout. When a COLMAP rig frame holds several of the images,
-    ``extras["colmap_frame_id"]`` (N,) marks those taken together.
+    from the layout. ``extras["detection_index"]`` (N, M) or (N,) int: the index of each
+    detection in the image's keypoint list (-1 = empty slot). When a COLMAP rig frame holds
+    several of the images, ``extras["colmap_frame_id"]`` (N,) marks those taken together.
     """
     source = str(kp.source) if kp.source is not None else "keypoints"
     person = _parse_person(person)
@@ -204,23 +220,24 @@ def build_capture(
                              f"expected (M, {num_points}, 3)")
     if person == "auto":
         person = _auto_person(kp, candidates, min_score)
-    names, xs, Ks, Rs, Cs, confs = [], [], [], [], [], []
+    names, xs, Ks, Rs, Cs, confs, indices = [], [], [], [], [], [], []
     empty = []
     for name in tqdm(candidates, desc="observations", unit="image", leave=False):
         people = kp.points[name]
         if person == "all":
-            chosen = list(usable_people(people, min_score))
+            chosen = usable_people(people, min_score).tolist()
         else:
-            pts = select_person(people, person, min_score) if len(people) else None
-            chosen = [] if pts is None else [pts]
-        detections = [d for d in (_undistorted(ws, name, pts, min_score) for pts in chosen)
-                      if d is not None]
+            m = person_index(people, person, min_score)
+            chosen = [] if m is None else [m]
+        detections = [(m, d) for m, d in ((m, _undistorted(ws, name, people[m], min_score))
+                                          for m in chosen) if d is not None]
         if not detections:
             empty.append(name)
             continue
         names.append(name)
-        xs.append(np.stack([x for x, _ in detections]))
-        confs.append(np.stack([c for _, c in detections]))
+        xs.append(np.stack([x for _, (x, _) in detections]))
+        confs.append(np.stack([c for _, (_, c) in detections]))
+        indices.append([m for m, _ in detections])
         Ks.append(ws.pinhole(name))
         Rs.append(ws.rotation(name))
         Cs.append(ws.centre(name))
@@ -232,8 +249,9 @@ def build_capture(
     slots = max(len(x) for x in xs)
     x = np.full((len(names), slots, num_points, 2), np.nan)
     confidence = np.zeros((len(names), slots, num_points))
-    for i, (xi, ci) in enumerate(zip(xs, confs, strict=True)):
-        x[i, :len(xi)], confidence[i, :len(ci)] = xi, ci
+    detection = np.full((len(names), slots), -1, dtype=np.int64)
+    for i, (xi, ci, mi) in enumerate(zip(xs, confs, indices, strict=True)):
+        x[i, :len(xi)], confidence[i, :len(ci)], detection[i, :len(mi)] = xi, ci, mi
     if person != "all":
         x, confidence = x[:, 0], confidence[:, 0]
     seen = np.isfinite(x).all(axis=-1).reshape(len(names), -1, num_points)
@@ -243,7 +261,7 @@ def build_capture(
         raise InputError(f"{source}: point(s) {_some(missing)} observed in no image "
                          "(lower min_score or use a layout without them)")
     stream, frame = assign_streams(ws, names, stream_pattern)
-    extras = {}
+    extras = {"detection_index": detection if person == "all" else detection[:, 0]}
     if any(ws.frame_size(n) > 1 for n in names):
         extras["colmap_frame_id"] = np.array([ws.frame_id(n) for n in names], dtype=np.int64)
     pairs = np.asarray(kp.layout.symmetric_pairs, dtype=np.int64).reshape(-1, 2)

@@ -20,7 +20,7 @@ from .core.result import Result
 from .core.solver import reconstruct
 from .errors import InputError
 from .io import atomic_path
-from .keypoints import FORMATS, Layout, read_keypoints
+from .keypoints import FORMATS, Layout, load_layout, read_keypoints
 from .observations import PERSON_MODES, build_capture
 
 logger = logging.getLogger("dloe_sfm")
@@ -132,12 +132,14 @@ def export_reconstruction(out: Path, capture: Capture, result: Result, *,
 
 def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
          stream_pattern: str | None = None, min_score: float = 0.0,
-         person: str | int = "auto", config: Path | None = None,
-         overrides: list[str] | None = None, options: Options | None = None,
-         overwrite: bool = False, plots: bool = True) -> Path:
+         person: str | int = "auto", layout: str | Path | Layout | None = None,
+         config: Path | None = None, overrides: list[str] | None = None,
+         options: Options | None = None, overwrite: bool = False, plots: bool = True) -> Path:
     """Workspace + keypoints -> capture -> DLOE -> ``out`` (INTERFACES.md section 4).
 
     ``keypoints`` may be None for ``aruco`` (markers detected in the workspace's images).
+    ``layout`` (names, skeleton, left/right pairs of the points; ``keypoints.load_layout``: a
+    ``Layout``, a name or a JSON file) replaces the format's own; not for ``aruco``.
     ``out`` is checked first (an existing folder is refused unless ``overwrite``) and written
     atomically: on any error nothing is left at ``out``. Returns ``out``.
     """
@@ -153,7 +155,8 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     timings["load_workspace"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    kp = read_keypoints(fmt, keypoints, workspace=ws)
+    kp = read_keypoints(fmt, keypoints, workspace=ws,
+                        **({} if layout is None else {"layout": load_layout(layout)}))
     timings["read_keypoints"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -205,6 +208,10 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "person), 'all' (every detection with >= 1/4 of the points, "
                              "several subjects), 'auto' (default: 'all' when >= 10%% of the "
                              "images have several such detections, else 'largest')")
+    parser.add_argument("--layout", metavar="NAME|FILE.json",
+                        help="keypoint layout: a known name (BODY_25, BODY_25B, COCO_18, "
+                             "COCO_17) or a JSON file with point_names, edges, symmetric_pairs "
+                             "(default: the format's own)")
     parser.add_argument("--config", type=Path, help="TOML file of solver options")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override one solver option (repeatable)")
@@ -217,7 +224,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     out = main(args.workspace, args.keypoints, args.fmt, args.out,
                stream_pattern=args.stream_pattern, min_score=args.min_score, person=args.person,
-               config=args.config, overrides=args.overrides,
+               layout=args.layout, config=args.config, overrides=args.overrides,
                options=Options(progress=args.progress),
                overwrite=args.overwrite, plots=args.plots)
     print(f"reconstruction written to {out}")

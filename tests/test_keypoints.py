@@ -11,8 +11,8 @@ import pytest
 
 from dloe_sfm import colmap
 from dloe_sfm.errors import InputError
-from dloe_sfm.keypoints import FORMATS, LAYOUTS, match_names, read_keypoints
-from dloe_sfm.observations import build_capture
+from dloe_sfm.keypoints import FORMATS, LAYOUTS, load_layout, match_names, read_keypoints
+from dloe_sfm.observations import assign_streams, build_capture
 
 P = 25
 
@@ -319,6 +319,30 @@ def test_build_capture_streams_people_and_scores(ws, tmp_path) -> None:
         build_capture(ws, kp, stream_pattern=r"camera(\d+)")
     with pytest.raises(InputError, match="person must be 'largest', 'all', 'auto' or an index"):
         build_capture(ws, kp, person="tallest")
+
+
+def test_default_frames_keep_the_gaps_of_the_names(ws) -> None:
+    """A missing frame number is a gap (a video that stopped), not the next frame."""
+    names = [n for n in ws.image_names if not n.endswith("frame000001.png")]
+    stream, frame = assign_streams(ws, names, None)
+    np.testing.assert_array_equal(stream, np.repeat([0, 1, 2], 3))
+    np.testing.assert_array_equal(frame, [0, 2, 3] * 3)
+
+
+def test_layout_files(tmp_path) -> None:
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps({"point_names": ["a", "b", "c"], "edges": [[0, 1], [1, 2]],
+                                "symmetric_pairs": [[0, 2]]}))
+    layout = load_layout(path)
+    assert layout.name == "mine" and layout.edges == [(0, 1), (1, 2)]
+    assert layout.symmetric_pairs == [(0, 2)]
+    assert load_layout("body-25") is LAYOUTS["BODY_25"] and load_layout(layout) is layout
+    path.write_text(json.dumps({"point_names": ["a", "b"], "edges": [[0, 2]]}))
+    with pytest.raises(InputError, match=r"edge \(0, 2\) out of range"):
+        load_layout(path)
+    path.write_text(json.dumps({"names": ["a"]}))
+    with pytest.raises(InputError, match="needs a non-empty 'point_names' list"):
+        load_layout(path)
 
 
 def test_one_stream_is_not_enough(ws, tmp_path) -> None:

@@ -277,3 +277,14 @@ def test_stage_exports_people_of_a_workspace(ws, tmp_path) -> None:
     for png in ("sequence.png", "affinity.png", "events.png", "trajectories.png"):
         assert (out / "plots" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(list((out / "plots" / "overlays").glob("*.png"))) == 4
+    # detection_subject follows the files' person order, not the capture's (largest first)
+    with np.load(out / "trajectories.npz") as data:
+        detection_subject = data["detection_subject"]
+    for i, name in enumerate(capture.image_names):
+        with open(folder / f"{Path(name).stem}_keypoints.json") as f:
+            people = [np.reshape(q["pose_keypoints_2d"], (p, 3))[:, :2]
+                      for q in json.load(f)["people"]]
+        want = [np.argmin([np.abs(ws.project(name, person) - 0.5 - q).max()
+                           for person in truth[name]]) for q in people]
+        np.testing.assert_array_equal(detection_subject[i], want)
+    assert (capture.extras["detection_index"] != np.arange(2)).any()  # some were reordered

@@ -126,13 +126,19 @@ def test_cli_matches_python_and_leaves_the_model_alone(scene, reconstructed, tmp
     workspace, keypoints, _ = scene
     before = model_snapshot(workspace)
     out = tmp_path / "cli"
+    layout = tmp_path / "coco.json"  # COCO_18 under another name: a custom layout file
+    layout.write_text(json.dumps({"name": "mine", "point_names": LAYOUT.point_names,
+                                  "edges": LAYOUT.edges,
+                                  "symmetric_pairs": LAYOUT.symmetric_pairs}))
     proc = subprocess.run(
         [sys.executable, "-m", "dloe_sfm", "reconstruct", str(workspace), "--keypoints",
-         str(keypoints), "--format", "openpose", "--out", str(out), "--no-plots"],
+         str(keypoints), "--format", "openpose", "--out", str(out), "--no-plots",
+         "--layout", str(layout)],
         capture_output=True, text=True, timeout=300,
     )
     assert proc.returncode == 0, proc.stderr
     assert not (out / "plots").exists()
+    assert json.loads((out / "report.json").read_text())["layout"] == "mine"
     with np.load(out / "trajectories.npz") as a, np.load(reconstructed / "trajectories.npz") as b:
         np.testing.assert_allclose(a["X"], b["X"], atol=1e-9)
     assert model_snapshot(workspace) == before

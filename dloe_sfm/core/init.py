@@ -145,7 +145,19 @@ def fill_missing(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.n
             for k in range(3):
                 col[~good, k] = np.interp(pos[~good], pos[good], col[good, k])
             X[idx, p] = col
-    means = np.nanmean(X, axis=0)  # (P, 3)
-    gaps = ~np.isfinite(X)
-    X[gaps] = np.broadcast_to(means, X.shape)[gaps]
+    # then the point's mean; for a point no pair of rays triangulated anywhere, the mean of
+    # its image's other points; failing that, of all points
+    finite = np.isfinite(X).all(axis=2)
+    for mean in (_masked_mean(X, finite, axis=0)[None], _masked_mean(X, finite, axis=1)[:, None],
+                 _masked_mean(X.reshape(-1, 3), finite.ravel(), axis=0)[None, None]):
+        gaps = ~np.isfinite(X)
+        X[gaps] = np.broadcast_to(mean, X.shape)[gaps]
     return X
+
+
+def _masked_mean(X: np.ndarray, mask: np.ndarray, axis: int) -> np.ndarray:
+    """Mean of the rows of X (.., 3) where ``mask``, along ``axis``; NaN where none."""
+    count = mask.sum(axis=axis)[..., None]
+    total = np.where(mask[..., None], X, 0.0).sum(axis=axis)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -178,6 +179,7 @@ def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3)
     The association is then checked against the solution (``reassociate``) and, where it
     changed, aggregated and solved again, at most ``rounds`` times.
     """
+    started = time.perf_counter()
     assignment = associate(capture, options)
     s = int(assignment.max()) + 1
     p = capture.num_points
@@ -194,6 +196,7 @@ def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3)
             break
         logger.info("association: %d image(s) changed, solving again", changed)
         assignment = new
+    result.seconds = time.perf_counter() - started
     result.subject_id = np.repeat(np.arange(s), p)
     result.point_id = np.tile(np.arange(p), s)
     result.assignment = assignment

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import InputError
-from .base import LAYOUTS, Keypoints, Layout, match_names, rename_to_workspace
+from .base import LAYOUTS, Keypoints, Layout, load_layout, match_names, rename_to_workspace
 
 if TYPE_CHECKING:
     from ..colmap import Workspace
@@ -23,7 +23,8 @@ FORMATS = {
     "aruco": "dloe_sfm.keypoints.aruco",
 }
 
-__all__ = ["FORMATS", "LAYOUTS", "Keypoints", "Layout", "match_names", "read_keypoints"]
+__all__ = ["FORMATS", "LAYOUTS", "Keypoints", "Layout", "load_layout", "match_names",
+           "read_keypoints"]
 
 
 def read_keypoints(

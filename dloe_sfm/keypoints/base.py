@@ -137,6 +137,28 @@ def named_layout(name: str, source: Path | str) -> Layout:
     return LAYOUTS[key]
 
 
+def load_layout(spec: str | Path | Layout) -> Layout:
+    """A layout as given, from a JSON file (``*.json``: ``{"name": ..., "point_names": [...],
+    "edges": [[a, b], ...], "symmetric_pairs": [[a, b], ...]}``, indices into point_names,
+    edges and pairs optional) or by name (``LAYOUTS``)."""
+    if isinstance(spec, Layout):
+        return spec
+    if Path(spec).suffix.lower() != ".json":
+        return named_layout(str(spec), "layout")
+    data = read_json(Path(spec))
+    names = data.get("point_names") if isinstance(data, dict) else None
+    if not isinstance(names, list) or not names:
+        raise InputError(f"{spec}: a layout needs a non-empty 'point_names' list")
+    try:
+        pairs = {key: [(int(a), int(b)) for a, b in data.get(key, [])]
+                 for key in ("edges", "symmetric_pairs")}
+    except (TypeError, ValueError):
+        raise InputError(f"{spec}: 'edges' and 'symmetric_pairs' must be lists of index "
+                         "pairs") from None
+    return Layout(name=str(data.get("name", Path(spec).stem)),
+                  point_names=[str(n) for n in names], **pairs)
+
+
 def get_layout(layout: str | Layout | None, num_points: int, source: Path | str) -> Layout:
     """A layout by name (``LAYOUTS``), as given, or generic; its size must be ``num_points``."""
     if layout is None:
