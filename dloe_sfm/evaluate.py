@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 from pathlib import Path
@@ -31,22 +32,57 @@ def point_errors(
 
 
 def evaluate(
-    capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True
+    capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True,
+    result: dict | None = None,
 ) -> dict[str, float]:
     """Errors of X and |tau| of order against ``capture.extras`` X_true / t_true.
 
     With ``references`` also the two yardsticks on the same capture: the oracle (X-step with the
-    true temporal chain, points pinned to their rays) and pseudo-triangulation.
+    true temporal chain, points pinned to their rays) and pseudo-triangulation (one subject).
+    ``result`` (the arrays of a result file) adds what the simulator's scenarios know: images
+    associated correctly (``subject_true``: subjects matched by the best permutation, errors
+    then per subject), event purity (``event_true``), and the rejected outliers and fixed
+    swaps against ``outlier_true`` / ``swap_true``.
     """
     for key in ("X_true", "t_true"):
         if key not in capture.extras:
             raise InputError(f"capture has no ground truth '{key}' to evaluate against")
     X_true, t_true = capture.extras["X_true"], capture.extras["t_true"]
+    result = result or {}
+    out: dict[str, float] = {}
+    vis = capture.visible
+    if X_true.ndim == 4:  # several subjects: X_true (N, S, P, 3) by person
+        out.update(_subjects(capture, X, result))
+        s, p = X_true.shape[1:3]
+        perm = [int(out[f"subject_{k}_person"]) for k in range(s)]
+        X_true = X_true[:, perm].reshape(X_true.shape[0], s * p, 3)
+        vis = np.ones(X_true.shape[:2], dtype=bool)
+        references = False
     if X.shape != X_true.shape:
         raise InputError(f"result X has shape {X.shape}, the capture's X_true {X_true.shape}")
-    vis = capture.visible
-    out = point_errors(X, X_true, vis)
+    out.update(point_errors(X, X_true, vis))
     out["kendall_tau"] = kendall_tau(order, t_true)
+    if "event_true" in capture.extras and "events" in result:
+        truth, found = capture.extras["event_true"], result["events"]
+        majority = sum(np.bincount(truth[found == e]).max() for e in np.unique(found))
+        out["events_found"] = float(np.unique(found).size)
+        out["event_purity"] = majority / truth.size
+    if "outlier_true" in capture.extras:
+        truth = capture.extras["outlier_true"]
+        hit = np.zeros(truth.shape, dtype=bool)
+        if "outliers" in result:
+            hit[tuple(result["outliers"].T)] = True
+        out["outliers_rejected"] = float(hit.sum())
+        out["outlier_recall"] = float((hit & truth).sum() / max(truth.sum(), 1))
+        out["outlier_precision"] = float((hit & truth).sum() / max(hit.sum(), 1))
+    if "swap_true" in capture.extras and capture.symmetric_pairs is not None:
+        truth, pairs = capture.extras["swap_true"], capture.symmetric_pairs
+        undone = np.zeros(truth.shape, dtype=np.int64)
+        for n, a, _ in result.get("swaps", np.zeros((0, 3), dtype=np.int64)):
+            undone[n, np.flatnonzero(pairs[:, 0] == a)] += 1
+        fixed = undone % 2 == 1
+        out["swaps_found"] = float((fixed & truth).sum() / max(truth.sum(), 1))
+        out["swaps_false"] = float((fixed & ~truth).sum())
     if references:
         out["oracle_mm"] = point_errors(oracle_reconstruct(capture, t_true), X_true, vis)[
             "error_mm"
@@ -57,11 +93,32 @@ def evaluate(
     return out
 
 
+def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]:
+    """Association of a several-subject result against ``subject_true`` and per-person errors."""
+    if "assignment" not in result or "subject_true" not in capture.extras:
+        raise InputError("a several-subject capture needs the result's 'assignment' and the "
+                         "capture's 'subject_true' to be evaluated")
+    truth, assignment = capture.extras["subject_true"], result["assignment"]
+    X_true = capture.extras["X_true"]
+    s, p = X_true.shape[1:3]
+    if assignment.max() + 1 != s:
+        raise InputError(f"result has {assignment.max() + 1} subjects, the capture {s} people")
+    perm = max(itertools.permutations(range(s)),
+               key=lambda q: (np.array(q)[assignment] == truth).all(axis=1).mean())
+    out = {"associated": float((np.array(perm)[assignment] == truth).all(axis=1).mean())}
+    for k, person in enumerate(perm):
+        out[f"subject_{k}_person"] = float(person)
+        out[f"subject_{k}_error_mm"] = float(
+            np.linalg.norm(X[:, k * p:(k + 1) * p] - X_true[:, person], axis=2).mean() * 1000
+        )
+    return out
+
+
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
     """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth)."""
     cap = load_capture(capture)
     res = load_result(result)
-    scores = evaluate(cap, res["X"], res["order"], references=references)
+    scores = evaluate(cap, res["X"], res["order"], references=references, result=res)
     if out is not None:
         Path(out).write_text(json.dumps(scores, indent=2))
     return scores

@@ -298,6 +298,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         if subjects:
             attributes["subject_id"] = subject_id[finite].astype(np.int32)
         attributes["observed"] = visible[i, finite].astype(np.uint8)
+        attributes["event"] = np.full(int(finite.sum()), result.events[i], dtype=np.int32)
         if capture.confidence is not None:
             conf = np.nan_to_num(capture.confidence[i], nan=0.0).astype(np.float32)
             attributes["confidence"] = conf[finite]

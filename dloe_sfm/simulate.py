@@ -1,4 +1,10 @@
-"""Simulate an unsynchronised multi-camera capture of a mocap sequence (the paper's protocol)."""
+"""Simulate an unsynchronised multi-camera capture of a mocap sequence (the paper's protocol).
+
+Several sequences: ``--mix events`` films them one after another with the same cameras,
+``--mix people`` puts one person per sequence side by side in the same images (detections
+shuffled per image). ``--outliers`` / ``--swaps`` then corrupt the detections. The truth needed
+by ``dloe-sfm evaluate`` rides along in the capture file.
+"""
 
 from __future__ import annotations
 
@@ -7,26 +13,71 @@ import logging
 from dataclasses import fields
 from pathlib import Path
 
+from .errors import InputError
 from .io import save_capture
 from .synth import SimulationSettings, load_mocap, simulate
+from .synth.scenarios import (
+    add_outliers,
+    simulate_events,
+    simulate_people,
+    swap_symmetric,
+    symmetric_pairs,
+)
 
 logger = logging.getLogger("dloe_sfm")
 
+MIXES = ("events", "people")
 
-def main(mocap: Path, out: Path, settings: SimulationSettings | None = None) -> Path:
-    """Write ``out`` (capture.npz with ``X_true`` / ``t_true`` ground truth) from a mocap .npz."""
-    seq = load_mocap(mocap)
-    capture = simulate(seq, settings)
+
+def main(
+    mocap: Path | list[Path],
+    out: Path,
+    settings: SimulationSettings | None = None,
+    *,
+    mix: str = "events",
+    gap: float = 2.0,
+    spacing: float = 2.0,
+    outliers: float = 0.0,
+    swaps: float = 0.0,
+) -> Path:
+    """Write ``out`` (capture.npz with ``X_true`` / ``t_true`` ground truth) from mocap .npz
+    file(s): one sequence, or several mixed as ``mix`` (``events``: ``gap`` seconds apart;
+    ``people``: ``spacing`` metres apart); then ``outliers`` of the observations moved 20-100 px
+    and ``swaps`` of the left/right pairs exchanged."""
+    paths = [mocap] if isinstance(mocap, str | Path) else list(mocap)
+    seqs = [load_mocap(p) for p in paths]
+    if len(seqs) == 1:
+        capture = simulate(seqs[0], settings)
+    elif mix == "events":
+        capture = simulate_events(seqs, settings, gap=gap)
+    elif mix == "people":
+        capture = simulate_people(seqs, settings, spacing=spacing)
+    else:
+        raise InputError(f"unknown mix '{mix}' (known: {', '.join(MIXES)})")
+    seed = (settings or SimulationSettings()).seed
+    if outliers > 0:
+        capture = add_outliers(capture, outliers, seed=seed + 1)
+    if swaps > 0:
+        capture = swap_symmetric(capture, symmetric_pairs(seqs[0].parents), swaps, seed=seed + 2)
     save_capture(out, capture)
-    logger.info(
-        "%s: %d images x %d points from %s", out, capture.num_images, capture.num_points, seq.name
-    )
+    logger.info("%s: %d images x %d points from %s", out, capture.num_images,
+                capture.num_points, ", ".join(s.name for s in seqs))
     return Path(out)
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("mocap", type=Path, help="mocap .npz (positions (T, J, 3) metres, fps)")
+    parser.add_argument("mocap", type=Path, nargs="+",
+                        help="mocap .npz (positions (T, J, 3) metres, fps); several: see --mix")
     parser.add_argument("--out", type=Path, required=True, help="capture.npz to write")
+    parser.add_argument("--mix", choices=MIXES, default="events",
+                        help="several sequences: one after another (events, default) or side "
+                             "by side in the same images (people)")
+    parser.add_argument("--gap", type=float, default=2.0, help="seconds between events")
+    parser.add_argument("--spacing", type=float, default=2.0, help="metres between people")
+    parser.add_argument("--outliers", type=float, default=0.0,
+                        help="fraction of observations moved 20-100 px (wrong detections)")
+    parser.add_argument("--swaps", type=float, default=0.0,
+                        help="fraction of left/right pairs swapped in each image")
     defaults = SimulationSettings()
     for f in fields(SimulationSettings):
         value = getattr(defaults, f.name)
@@ -44,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     settings = SimulationSettings(
         **{f.name: getattr(args, f.name) for f in fields(SimulationSettings)}
     )
-    main(args.mocap, args.out, settings)
+    main(args.mocap, args.out, settings, mix=args.mix, gap=args.gap, spacing=args.spacing,
+         outliers=args.outliers, swaps=args.swaps)
     return 0
 
 

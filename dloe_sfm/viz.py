@@ -112,22 +112,32 @@ def plot_affinity(result: Result, path: Path | str) -> Path:
 
 
 def plot_events(result: Result, path: Path | str) -> Path:
-    """The images in a 2D spectral embedding of the affinity (``core.events``), coloured by
-    event; images of one event cluster, separate events fall apart."""
-    coords = core_events.spectral_coordinates(result.A, dim=2)
+    """Every event's images in the 2D spectral embedding of that event's graph (``core.events``;
+    the first coordinate orders an event in time), events side by side and coloured; the title
+    counts the graph's links between events (0 when they are disjoint)."""
     labels, counts = np.unique(result.events, return_counts=True)
+    A = sp.csr_matrix(result.A)
+    coo = A.tocoo()
+    crossing = int((result.events[coo.row] != result.events[coo.col]).sum())
     cmap = colormaps["tab10" if labels.size <= 10 else "turbo"]
-    fig = _figure(figsize=(7.2, 6.2))
+    fig = _figure(figsize=(max(7.2, 2.6 * labels.size), 5.4))
     ax = fig.subplots()
     for k, (event, count) in enumerate(zip(labels.tolist(), counts.tolist(), strict=True)):
-        idx = result.events == event
+        idx = np.flatnonzero(result.events == event)
+        xy = np.zeros((idx.size, 2))
+        if idx.size > 2:
+            xy = core_events.spectral_coordinates(A[idx][:, idx], dim=2)
+            xy = (xy - xy.mean(axis=0)) / np.maximum(np.abs(xy - xy.mean(axis=0)).max(axis=0),
+                                                      1e-300)
         colour = cmap(k) if labels.size <= 10 else cmap(k / (labels.size - 1))
-        ax.scatter(coords[idx, 0], coords[idx, 1], s=14, color=colour,
+        ax.scatter(xy[:, 0] + 2.5 * k, xy[:, 1], s=14, color=colour,
                    label=f"event {event} ({count} image{'s' * (count > 1)})")
-    ax.set_xlabel("spectral coordinate 1")
+    ax.set_xticks([2.5 * k for k in range(labels.size)])
+    ax.set_xticklabels([f"event {e}" for e in labels.tolist()])
+    ax.set_xlabel("spectral coordinate 1 of each event's graph (its time line)")
     ax.set_ylabel("spectral coordinate 2")
-    ax.set_title(f"Spectral embedding of the affinity ({labels.size} "
-                 f"event{'s' * (labels.size > 1)}, N = {result.events.size})")
+    ax.set_title(f"{labels.size} event{'s' * (labels.size > 1)}, N = {result.events.size}: "
+                 f"{crossing} link{'s' * (crossing != 1)} between events")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best", ncol=1 + labels.size // 12)
     fig.tight_layout()

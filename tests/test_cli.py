@@ -66,6 +66,26 @@ def test_solve_then_evaluate(capture_file, tmp_path):
     assert float(scores["error_mm"]) < 0.5 * float(scores["pseudo_triangulation_mm"])
 
 
+def test_two_people_through_the_command_line(assets_dir, tmp_path):
+    """simulate --mix people -> solve (a capture with x (N, 2, P, 2)) -> evaluate."""
+    cap, res = tmp_path / "people.npz", tmp_path / "result.npz"
+    mocap = assets_dir / "mocap"
+    r = dloe("simulate", mocap / "walking_1.npz", mocap / "basketball_signal_1.npz", "--mix",
+             "people", "--duration", "1.0", "--rate", "15", "--out", cap)
+    assert r.returncode == 0, r.stderr
+    assert load_capture(cap).x.shape[1:] == (2, 28, 2)
+    r = dloe("solve", cap, "--out", res)
+    assert r.returncode == 0, r.stderr
+    result = load_result(res)
+    assert result["X"].shape[1:] == (56, 3) and result["assignment"].shape[1] == 2
+    assert np.array_equal(result["subject_id"], np.repeat([0, 1], 28))
+    r = dloe("evaluate", res, cap)
+    assert r.returncode == 0, r.stderr
+    scores = dict(line.split() for line in r.stdout.strip().splitlines())
+    assert float(scores["associated"]) >= 0.98
+    assert float(scores["subject_0_error_mm"]) < 10 and float(scores["subject_1_error_mm"]) < 10
+
+
 def corrupt(src, dst, **changes):
     with np.load(src) as d:
         arrays = {k: d[k] for k in d.files}

@@ -89,6 +89,7 @@ def test_frames_read_back_in_open3d(exported) -> None:
         np.testing.assert_array_equal(cloud.point.point_id.numpy().ravel(), np.arange(P))
         np.testing.assert_allclose(cloud.point.positions.numpy(), result.X[i], atol=1e-6, rtol=0)
         np.testing.assert_array_equal(cloud.point.observed.numpy().ravel(), capture.visible[i])
+        assert (cloud.point.event.numpy() == result.events[i]).all()
         np.testing.assert_allclose(cloud.point.confidence.numpy().ravel(), capture.confidence[i],
                                    atol=1e-6)
     first = Path(capture.image_names[result.order[0]])
