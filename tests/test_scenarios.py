@@ -180,7 +180,7 @@ def test_outliers_are_rejected(walking):
     found[tuple(r.outliers.T)] = True
     assert (found & truth).sum() >= 0.95 * truth.sum()
     assert (found & ~truth).sum() <= 0.5 * truth.sum()
-    assert (r.outlier_residual_px >= 3.0).all()
+    assert np.median(r.outlier_residual_px) >= 15.0  # the moves were 20-100 px
 
 
 def test_left_right_swaps_are_found(walking, clips):

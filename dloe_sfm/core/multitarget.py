@@ -23,8 +23,7 @@ from .events import cluster_coordinates
 from .options import Options
 from .result import Result
 from .robust import predicted
-from .solver import build_problem, initialise, normalisation, reconstruct
-from .steps import select_candidates, w_step
+from .solver import initialise, reconstruct, shape_space_graph
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -47,22 +46,6 @@ def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
         confidence=conf, image_names=names,
     )
     return proxies, source, slot
-
-
-def proxy_graph(proxies: Capture, options: Options):
-    """Step 2: DLOE's W over the proxies, candidates and compactness in shape space."""
-    X_world = initialise(proxies, options)
-    origin, scale = normalisation(proxies, X_world)
-    prob = build_problem(proxies, options, origin, scale)
-    X = (X_world - origin) / scale
-    n = X.shape[0]
-    cand = select_candidates(
-        X.reshape(n, -1), prob, options.num_candidates, min_angle=options.min_ray_angle
-    )
-    return w_step(
-        X, np.ones(n), cand, prob,
-        lambda1=options.lambda1, lambda3=options.lambda3, ridge=options.ridge,
-    )
 
 
 def constrained_clusters(
@@ -112,7 +95,7 @@ def associate(capture: Capture, options: Options) -> np.ndarray:
     if k == 1:
         assignment[source, slot] = 0
         return assignment
-    W = proxy_graph(proxies, options)
+    W = shape_space_graph(proxies, options, initialise(proxies, options))
     F = cluster_coordinates(W, k)
     labels = constrained_clusters(F, source, k)
     streams = capture.stream_ids[source]
