@@ -98,8 +98,10 @@ class Options:
     """Scale c of the robust loss, pixels; None: from the residuals, 4 sigma (sigma: their median
     / 1.18, a 2D Gaussian's) but at least 3 px. Observations weighted below 1/2 (r > c for
     Cauchy) are reported, and dropped with hard rays."""
-    robust_iterations: int = 3
-    """At most this many reweighted re-solves (stops earlier when nothing changes)."""
+    robust_iterations: int = 5
+    """At most this many reweighted re-solves (stops earlier when nothing changes; swaps fixed in
+    one round let the next find those that were hidden behind them: 3 rounds found 93 % of 10 %
+    swaps on walking, 5 found 98 %)."""
     fix_swaps: bool = True
     """Exchange left/right detections of the capture's ``symmetric_pairs`` that fit the graph's
     prediction far better swapped."""
