@@ -100,15 +100,13 @@ def associate(capture: Capture, options: Options) -> np.ndarray:
     labels = constrained_clusters(F, source, k)
     streams = capture.stream_ids[source]
     lonely = np.bincount(source)[source] == 1
-    for c in range(k):
-        members = labels == c
-        if members.sum() < 8 or np.unique(streams[members]).size < 2:
-            labels[members & ~lonely] = -1
-    kept = np.unique(labels[labels >= 0])
-    _, first = np.unique(labels, return_index=True)
-    ranked = kept[np.argsort([first[np.searchsorted(np.unique(labels), c)] for c in kept])]
+    stray = [c for c in range(k) if (labels == c).sum() < 8
+             or np.unique(streams[labels == c]).size < 2]
+    if len(stray) < k:  # a capture too small for any subject to pass keeps them all
+        labels[np.isin(labels, stray) & ~lonely] = -1
+    ranked = sorted(np.unique(labels[labels >= 0]), key=lambda c: np.argmax(labels == c))
     remap = np.full(k, -1)
-    remap[ranked] = np.arange(ranked.size)
+    remap[ranked] = np.arange(len(ranked))
     assignment[source, slot] = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
     return assignment
 
