@@ -31,6 +31,23 @@ def point_errors(
     return out
 
 
+def best_permutation(assignment: np.ndarray, truth: np.ndarray) -> tuple[int, ...]:
+    """Subject ids are arbitrary: the permutation (subject k = person perm[k]) under which the
+    most images have every detection of ``assignment`` (N, M) on its ``truth`` (N, M) person."""
+    s = int(max(assignment.max(), truth.max())) + 1
+    return max(itertools.permutations(range(s)),
+               key=lambda q: (np.array(q)[assignment] == truth).all(axis=1).mean())
+
+
+def swaps_undone(swaps: np.ndarray, pairs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(N, K) bool: the (image, pair) entries that the result's ``swaps`` (image, a, b)
+    exchanged an odd number of times, ``pairs`` (K, 2) the capture's symmetric pairs."""
+    count = np.zeros(shape, dtype=np.int64)
+    for n, a, _ in swaps:
+        count[n, np.flatnonzero(pairs[:, 0] == a)] += 1
+    return count % 2 == 1
+
+
 def evaluate(
     capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True,
     result: dict | None = None,
@@ -77,10 +94,8 @@ def evaluate(
         out["outlier_precision"] = float((hit & truth).sum() / max(hit.sum(), 1))
     if "swap_true" in capture.extras and capture.symmetric_pairs is not None:
         truth, pairs = capture.extras["swap_true"], capture.symmetric_pairs
-        undone = np.zeros(truth.shape, dtype=np.int64)
-        for n, a, _ in result.get("swaps", np.zeros((0, 3), dtype=np.int64)):
-            undone[n, np.flatnonzero(pairs[:, 0] == a)] += 1
-        fixed = undone % 2 == 1
+        fixed = swaps_undone(result.get("swaps", np.zeros((0, 3), dtype=np.int64)), pairs,
+                             truth.shape)
         out["swaps_found"] = float((fixed & truth).sum() / max(truth.sum(), 1))
         out["swaps_false"] = float((fixed & ~truth).sum())
     if references:
@@ -103,8 +118,7 @@ def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]
     s, p = X_true.shape[1:3]
     if assignment.max() + 1 != s:
         raise InputError(f"result has {assignment.max() + 1} subjects, the capture {s} people")
-    perm = max(itertools.permutations(range(s)),
-               key=lambda q: (np.array(q)[assignment] == truth).all(axis=1).mean())
+    perm = best_permutation(assignment, truth)
     out = {"associated": float((np.array(perm)[assignment] == truth).all(axis=1).mean())}
     for k, person in enumerate(perm):
         out[f"subject_{k}_person"] = float(person)

@@ -9,6 +9,8 @@ re-solves (iteratively reweighted least squares on the ray term).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -79,25 +81,20 @@ def find_swaps(
 
 def apply_swaps(capture: Capture, swaps: np.ndarray) -> Capture:
     """A copy of ``capture`` with the observations (and confidences) of each swap exchanged."""
-    out = capture.subset(np.arange(capture.num_images))
-    out.extras = capture.extras
-    if swaps.size == 0:
-        return out
     img, a, b = swaps.T
-    out.x = capture.x.copy()
-    out.x[img, a], out.x[img, b] = capture.x[img, b], capture.x[img, a]
-    if capture.confidence is not None:
-        out.confidence = capture.confidence.copy()
-        out.confidence[img, a] = capture.confidence[img, b]
-        out.confidence[img, b] = capture.confidence[img, a]
-    return out
+
+    def exchanged(values: np.ndarray | None) -> np.ndarray | None:
+        if values is None:
+            return None
+        out = values.copy()
+        out[img, a], out[img, b] = values[img, b], values[img, a]
+        return out
+
+    return replace(capture, x=exchanged(capture.x), confidence=exchanged(capture.confidence))
 
 
 def reweighted(capture: Capture, weights: np.ndarray) -> Capture:
     """``capture`` with confidences multiplied by robust ``weights``, and the observations
     weighted below 1/2 dropped: the solver's first phase pins every observed point to its ray
     (hard rays), where a weight can only keep or drop an observation."""
-    out = capture.subset(np.arange(capture.num_images))
-    out.extras = capture.extras
-    out.confidence = np.where(weights < 0.5, 0.0, capture.weights * weights)
-    return out
+    return replace(capture, confidence=np.where(weights < 0.5, 0.0, capture.weights * weights))

@@ -9,6 +9,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..core.capture import Capture
@@ -142,10 +144,7 @@ def add_outliers(
     angle = rng.uniform(0, 2 * np.pi, hit.sum())
     length = rng.uniform(low, high, hit.sum())
     x[hit] += length[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
-    out = capture.subset(np.arange(capture.num_images))
-    out.x = x
-    out.extras = {**capture.extras, "outlier_true": hit}
-    return out
+    return replace(capture, x=x, extras={**capture.extras, "outlier_true": hit})
 
 
 def swap_symmetric(
@@ -164,8 +163,5 @@ def swap_symmetric(
     a, b = pairs[idx[-1], 0], pairs[idx[-1], 1]
     head = idx[:-1]
     x[(*head, a)], x[(*head, b)] = capture.x[(*head, b)], capture.x[(*head, a)]
-    out = capture.subset(np.arange(capture.num_images))
-    out.x = x
-    out.symmetric_pairs = pairs
-    out.extras = {**capture.extras, "swap_true": hit}
-    return out
+    return replace(capture, x=x, symmetric_pairs=pairs,
+                   extras={**capture.extras, "swap_true": hit})

@@ -20,7 +20,6 @@ Prints a table, writes ``scenarios.json`` (every run, settings, machine) and ``s
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import time
 from collections import Counter
@@ -33,7 +32,8 @@ from dloe_sfm.benchmark import machine_info
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.solver import reconstruct
-from dloe_sfm.synth import SimulationSettings, load_mocap
+from dloe_sfm.evaluate import best_permutation, swaps_undone
+from dloe_sfm.synth import MocapSequence, SimulationSettings, load_mocap
 from dloe_sfm.synth.scenarios import (
     add_outliers,
     simulate_events,
@@ -62,6 +62,13 @@ def _error(X: np.ndarray, X_true: np.ndarray) -> float:
 
 def _settings(noise: float, duration: float, seed: int) -> SimulationSettings:
     return SimulationSettings(duration=duration, noise=noise, seed=seed)
+
+
+def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Capture:
+    """One person at the ring's centre, as in the people case, as a one-subject capture."""
+    cap = simulate_people([seq], settings, shuffle=False)
+    return Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
+                   extras={"X_true": cap.extras["X_true"][:, 0]})
 
 
 def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int) -> dict:
@@ -95,9 +102,7 @@ def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int
     sec = time.perf_counter() - tic
     truth, X_true = cap.extras["subject_true"], cap.extras["X_true"]
     s = len(pair)
-    # subject k of the result is person perm[k] of the simulation (ids are arbitrary)
-    perm = max(itertools.permutations(range(s)),
-               key=lambda q: (np.array(q)[r.assignment] == truth).all(axis=1).mean())
+    perm = best_permutation(r.assignment, truth)  # subject k is person perm[k]
     associated = float((np.array(perm)[r.assignment] == truth).all(axis=1).mean())
     slot_of = np.argsort(truth, axis=1)
     people = []
@@ -118,9 +123,7 @@ def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int
 
 def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
     seq = load_mocap(data / f"li2018_train_{motion}.npz")
-    cap = simulate_people([seq], _settings(noise, duration, seed), shuffle=False)
-    cap = Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
-                  extras={"X_true": cap.extras["X_true"][:, 0]})
+    cap = _one_person(seq, _settings(noise, duration, seed))
     X_true = cap.extras["X_true"]
     bad = add_outliers(cap, 0.05, seed=seed + 1)
     truth = bad.extras["outlier_true"]
@@ -145,9 +148,7 @@ def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: i
 
 def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
     seq = load_mocap(data / f"li2018_train_{motion}.npz")
-    cap = simulate_people([seq], _settings(noise, duration, seed), shuffle=False)
-    cap = Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
-                  extras={"X_true": cap.extras["X_true"][:, 0]})
+    cap = _one_person(seq, _settings(noise, duration, seed))
     pairs = symmetric_pairs(seq.parents)
     bad = swap_symmetric(cap, pairs, 0.1, seed=seed + 2)
     truth = bad.extras["swap_true"]
@@ -156,10 +157,7 @@ def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int)
     tic = time.perf_counter()
     r = reconstruct(bad, opts)
     sec = time.perf_counter() - tic
-    undone = np.zeros(truth.shape, dtype=np.int64)  # times each (image, pair) was exchanged
-    for n, a, _ in r.swaps:
-        undone[n, np.flatnonzero(pairs[:, 0] == a)] += 1
-    fixed = undone % 2 == 1
+    fixed = swaps_undone(r.swaps, pairs, truth.shape)
     row = {"case": "swaps", "motions": [motion], "noise_px": noise, "images": cap.num_images,
            "swapped": int(truth.sum()), "found": float((fixed & truth).sum() / truth.sum()),
            "false_swaps": int((fixed & ~truth).sum()), "clean_mm": clean,
