@@ -336,6 +336,22 @@ def test_end_to_end_walking_accuracy(assets_dir):
     assert r.A.nnz <= 12 * cap.num_images  # sparse graph
 
 
+def test_soft_rays_average_the_noise(assets_dir):
+    """At 5 px the hard-ray solve carries all the noise; the soft-ray sweeps must relax it well
+    below both that solve and the hard-ray oracle. ``soft_iterations=0`` keeps the hard solve."""
+    cap = walking_capture(assets_dir, noise=5.0)
+    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+
+    def error(X):
+        return 1000 * np.linalg.norm(X - X_true, axis=2).mean()
+
+    opts = Options(noise_px=5.0, robust_loss="none")
+    hard = error(reconstruct(cap, opts.replace(soft_iterations=0)).X)
+    soft = error(reconstruct(cap, opts).X)
+    oracle = error(oracle_reconstruct(cap, t))
+    assert soft <= 0.6 * hard and soft <= 0.6 * oracle, (soft, hard, oracle)
+
+
 def test_missing_points_are_reconstructed(assets_dir):
     cap = walking_capture(assets_dir, missing=0.3, seed=1)
     X_true = cap.extras["X_true"]

@@ -417,7 +417,8 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
     timings["sequencing"] += time.perf_counter() - t0
     st = _State(X=X, D=_degrees(f, prob, options), prior_f=prior_f, f=f)
     lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
-    total = options.max_iterations + (options.soft_iterations if np.isfinite(lambda2) else 0)
+    soft = np.isfinite(lambda2) and options.soft_iterations > 0
+    total = options.max_iterations + (options.soft_iterations if soft else 0)
     with tqdm(
         total=total, desc="DLOE", unit="it", leave=False, disable=not options.progress
     ) as bar:
@@ -426,7 +427,7 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
         success, message = _alternate(
             st, prob, capture.frame, options, np.inf, options.max_iterations, timings, bar
         )
-        if np.isfinite(lambda2):
+        if soft:
             st.X = st.best[1].copy()
             success, message = _alternate(
                 st, prob, capture.frame, options, lambda2, options.soft_iterations, timings, bar
