@@ -84,11 +84,11 @@ class Options:
     embedding of the distances (spectral ranking, classical MDS, shortest Hamiltonian path)."""
     max_iterations: int = 200
     """Sweeps with hard rays; a finite ray weight (lambda2 or noise_px) then adds soft ones."""
-    soft_iterations: int = 40
-    """With a finite ray weight: sweeps with soft rays after the hard-ray solve. The hard-ray
-    solve carries the full noise; at 5 px it needs tens of soft sweeps to relax (running: 38.6 mm
-    after 8, 26.7 after 40), while at 2 px more sweeps start to fit W to the noise (walking:
-    7.10 mm after 8, 7.31 after 40, 7.6 to convergence). 0 = hard rays only."""
+    soft_iterations: int = 60
+    """With a finite ray weight: at most this many sweeps with soft rays after the hard-ray solve
+    (0 = keep the hard-ray solve). With the weight from ``noise_px`` they stop as soon as the
+    points' median reprojection residual is down to that of the noise, ``noise_px sqrt(2 ln 2)``
+    (the discrepancy principle): a few sweeps at 1-2 px, tens at 5 px."""
     tolerance: float = 1e-6
     """Stop when the RMS change of X in one sweep falls below this (normalised units)..."""
     cost_tolerance: float = 1e-5
