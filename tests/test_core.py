@@ -352,6 +352,23 @@ def test_soft_rays_average_the_noise(assets_dir):
     assert soft <= 0.6 * hard and soft <= 0.6 * oracle, (soft, hard, oracle)
 
 
+def test_soft_phase_stops_at_the_noise_level(assets_dir):
+    """At 1 px the soft sweeps stop once the points' median residual is the noise's (the
+    discrepancy principle); running all of them (explicit lambda2) lets W fit the noise."""
+    cap = walking_capture(assets_dir, noise=1.0)
+    X_true = cap.extras["X_true"]
+    opts = Options(noise_px=1.0, robust_loss="none")
+    stopped = reconstruct(cap, opts)
+    lambda2 = opts.ray_weight(float(np.median(cap.K[:, 0, 0])))
+    every = reconstruct(cap, opts.replace(lambda2=lambda2))
+    assert "noise level" in stopped.message and "60 iterations" in every.message
+    assert stopped.nit < every.nit
+    e_stopped, e_every = (
+        1000 * np.linalg.norm(r.X - X_true, axis=2).mean() for r in (stopped, every)
+    )
+    assert e_stopped <= 0.95 * e_every, (e_stopped, e_every)
+
+
 def test_missing_points_are_reconstructed(assets_dir):
     cap = walking_capture(assets_dir, missing=0.3, seed=1)
     X_true = cap.extras["X_true"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -324,7 +325,7 @@ def _alternate(
     budget: int,
     timings: dict,
     bar,
-    fit_px=None,
+    fit_px: tuple[Callable[[np.ndarray], float], float] | None = None,
 ) -> tuple[bool, str]:
     """Up to ``budget`` W -> D -> X sweeps at ray weight ``lambda2``; (converged, message).
 
@@ -464,7 +465,9 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
     )
 
 
-def _discrepancy(capture: Capture, options: Options, origin: np.ndarray, scale: float):
+def _discrepancy(
+    capture: Capture, options: Options, origin: np.ndarray, scale: float
+) -> tuple[Callable[[np.ndarray], float], float] | None:
     """(median reprojection residual of normalised X in pixels, its expected value) when the
     ray weight comes from ``noise_px``: the median radius of 2D Gaussian noise of std
     ``noise_px``, ``noise_px sqrt(2 ln 2)``. None with an explicit ``lambda2``.
