@@ -134,7 +134,9 @@ def run_method(name: str, capture: Capture, options: Options) -> tuple[np.ndarra
                       "events": int(result.events.max()) + 1}
 
 
-def _resolve_motion(data: Path, name: str) -> Path:
+def resolve_motion(data: Path, name: str) -> Path:
+    """The mocap file of ``name``: a path, ``data/<name>``, ``data/<name>.npz`` (assets/mocap) or
+    ``data/li2018_train_<name>.npz`` (../shared/data/mocap)."""
     for path in (Path(name), data / name, data / f"{name}.npz", data / f"li2018_train_{name}.npz"):
         if path.is_file():
             return path
@@ -514,7 +516,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
         motions = (motions or [RUNTIME_MOTION])[:1]
     elif motions is None:
         motions = QUICK_MOTIONS if quick else (KENDALL_MOTIONS if suite == "kendall" else MOTIONS)
-    paths = [str(_resolve_motion(data, m)) for m in motions]
+    paths = [str(resolve_motion(data, m)) for m in motions]
     base = Options()
     doc: dict = {"suite": suite, "quick": quick, "seeds": list(range(seeds)),
                  "motions": [Path(p).stem for p in paths], "duration_s": duration,

@@ -32,14 +32,14 @@ from pathlib import Path
 
 import numpy as np
 
-from dloe_sfm.benchmark import machine_info
+from dloe_sfm.benchmark import machine_info, resolve_motion
 from dloe_sfm.colmap import CameraSpec, ImageSpec, write_model
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.errors import InputError
 from dloe_sfm.io import atomic_path
 from dloe_sfm.keypoints import Layout
 from dloe_sfm.reconstruct import main as reconstruct_workspace
-from dloe_sfm.synth import MocapSequence, SimulationSettings, load_mocap, simulate
+from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 from dloe_sfm.synth.scenarios import (
     add_outliers,
     simulate_events,
@@ -55,15 +55,6 @@ PEOPLE = ("walking_1", "jumping_1")
 EVENTS = ("walking_1", "jumping_1", "basketball_signal_1")
 SINGLE = "walking_1"
 CASES = ("people", "events", "outliers", "swaps")
-
-
-def load_clip(data: Path, motion: str) -> MocapSequence:
-    """A mocap clip from ``data``: ``<motion>.npz`` (assets/mocap) or ``li2018_train_<motion>.npz``
-    (../shared/data/mocap)."""
-    for name in (f"{motion}.npz", f"li2018_train_{motion}.npz"):
-        if (data / name).is_file():
-            return load_mocap(data / name)
-    raise InputError(f"{data}: no mocap clip '{motion}'")
 
 
 def cmu_layout(parents: np.ndarray) -> Layout:
@@ -220,11 +211,13 @@ def run_case(case: str, folder: Path, data: Path, settings: SimulationSettings,
              overrides: list[str], plots: bool) -> dict:
     """Simulate, write, reconstruct and score one case in ``folder``."""
     if case == "people":
-        capture = simulate_people([load_clip(data, m) for m in PEOPLE], settings, spacing=2.0)
+        seqs = [load_mocap(resolve_motion(data, m)) for m in PEOPLE]
+        capture = simulate_people(seqs, settings, spacing=2.0)
     elif case == "events":
-        capture = simulate_events([load_clip(data, m) for m in EVENTS], settings, gap=2.0)
+        seqs = [load_mocap(resolve_motion(data, m)) for m in EVENTS]
+        capture = simulate_events(seqs, settings, gap=2.0)
     else:
-        capture = simulate(load_clip(data, SINGLE), settings)
+        capture = simulate(load_mocap(resolve_motion(data, SINGLE)), settings)
     layout = cmu_layout(capture.extras["parents"])
     if case == "outliers":
         capture = add_outliers(capture, 0.05, seed=settings.seed + 1)

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dloe_sfm.benchmark import machine_info
+from dloe_sfm.benchmark import machine_info, resolve_motion
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.solver import reconstruct
@@ -72,7 +72,7 @@ def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Capture:
 
 
 def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int) -> dict:
-    seqs = [load_mocap(data / f"li2018_train_{m}.npz") for m in mix]
+    seqs = [load_mocap(resolve_motion(data, m)) for m in mix]
     cap = simulate_events(seqs, _settings(noise, duration, seed))
     opts = Options(noise_px=noise)
     tic = time.perf_counter()
@@ -94,7 +94,7 @@ def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int)
 
 
 def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int) -> dict:
-    seqs = [load_mocap(data / f"li2018_train_{m}.npz") for m in pair]
+    seqs = [load_mocap(resolve_motion(data, m)) for m in pair]
     cap = simulate_people(seqs, _settings(noise, duration, seed))
     opts = Options(noise_px=noise)
     tic = time.perf_counter()
@@ -122,7 +122,7 @@ def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int
 
 
 def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
-    seq = load_mocap(data / f"li2018_train_{motion}.npz")
+    seq = load_mocap(resolve_motion(data, motion))
     cap = _one_person(seq, _settings(noise, duration, seed))
     X_true = cap.extras["X_true"]
     bad = add_outliers(cap, 0.05, seed=seed + 1)
@@ -147,7 +147,7 @@ def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: i
 
 
 def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
-    seq = load_mocap(data / f"li2018_train_{motion}.npz")
+    seq = load_mocap(resolve_motion(data, motion))
     cap = _one_person(seq, _settings(noise, duration, seed))
     pairs = symmetric_pairs(seq.parents)
     bad = swap_symmetric(cap, pairs, 0.1, seed=seed + 2)
