@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from tqdm.auto import tqdm
 
 from .capture import Capture
+from .clocks import fit_clocks, ray_equations, time_chain
 from .events import segment_events
 from .init import fill_missing, pseudo_triangulate
 from .options import Distance, Embedding, Options, RobustLoss
@@ -413,7 +414,8 @@ def _alternate(
 def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None) -> Result:
     """One event: init (unless given), alternation, sequencing."""
     t_start = time.perf_counter()
-    timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0}
+    timings = {"init": 0.0, "w_step": 0.0, "d_step": 0.0, "x_step": 0.0, "sequencing": 0.0,
+               "clocks": 0.0}
     if X_world is None:
         X_world = initialise(capture, options)
     origin, scale = normalisation(capture, X_world)
@@ -443,8 +445,16 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
             )
     _, X, _, W, D = st.best
     t0 = time.perf_counter()
-    _, f = _sequence(X, prob, capture.frame, options, final=True)
-    timings["sequencing"] += time.perf_counter() - t0
+    clock = _clock_times(X, prob, capture.frame, options)
+    if clock is not None:
+        # the chain's weights come from the time line: no compactness term (as the oracle)
+        W, D = time_chain(clock)
+        X = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=X)
+        f = clock
+        timings["clocks"] = time.perf_counter() - t0
+    else:
+        _, f = _sequence(X, prob, capture.frame, options, final=True)
+        timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(D) @ W)
     return Result(
         X=X * scale + origin,
@@ -463,6 +473,22 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
         timings=timings,
         scale=scale,
     )
+
+
+def _clock_times(
+    X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options
+) -> np.ndarray | None:
+    """(N,) times on the streams' fitted affine clocks (``core.clocks``), or None when they are
+    off or the capture is not all videos (two or more streams of three or more frames)."""
+    ids, counts = np.unique(prob.streams, return_counts=True)
+    if not options.stream_clocks or ids.size < 2 or counts.min() < 3:
+        return None
+    t0 = affine_time(X, prob.streams, frames)
+    if t0 is None:
+        return None
+    E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+    return fit_clocks(t0, prob.streams, frames, E, rhs, prob.visible,
+                      shared_rate=options.shared_rate)
 
 
 def _discrepancy(
@@ -497,22 +523,10 @@ def oracle_reconstruct(
     The first and last images have no neighbour on one side: their rows get D = 0, and they are
     placed by their neighbours' rows. Returns (N, P, 3) in world units.
     """
-    n = capture.num_images
-    order = np.argsort(times, kind="stable")
-    t = np.asarray(times, dtype=np.float64)[order]
-    prev, mid, nxt = order[:-2], order[1:-1], order[2:]
-    span = t[2:] - t[:-2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w_prev = np.where(span > 0, (t[2:] - t[1:-1]) / span, 0.5)
-    rows = np.concatenate([mid, mid])
-    cols = np.concatenate([prev, nxt])
-    vals = np.concatenate([w_prev, 1.0 - w_prev])
-    W = sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
+    W, D = time_chain(np.asarray(times, dtype=np.float64))
     options = Options()
     X0 = initialise(capture, options)
     origin, scale = normalisation(capture, X0)
     prob = build_problem(capture, options, origin, scale)
-    D = np.ones(n)
-    D[order[[0, -1]]] = 0.0
     X = x_step(W, D, prob, lambda1=lambda1, lambda2=lambda2, X_prev=(X0 - origin) / scale)
     return X * scale + origin

@@ -5,6 +5,7 @@ the setting's noise level), and compare with the two yardsticks on the same capt
 (X-step with the true temporal chain, points pinned to their rays) and pseudo-triangulation.
 
     python pipelines/targets/pipeline.py [--data ../shared/data/mocap] [--out outputs/targets]
+        [--settings ...] [--set stream_clocks=true]
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import initialise, oracle_reconstruct, reconstruct
@@ -53,8 +55,15 @@ SETTINGS = {
 
 
 def run(
-    data: Path, out: Path, motions: list[str], settings: list[str], duration: float, seed: int
+    data: Path,
+    out: Path,
+    motions: list[str],
+    settings: list[str],
+    duration: float,
+    seed: int,
+    base: Options | None = None,
 ) -> list[dict]:
+    base = base or Options()
     rows = []
     for name in settings:
         kw = SETTINGS[name]
@@ -62,7 +71,7 @@ def run(
             seq = load_mocap(data / f"li2018_train_{m}.npz")
             cap = simulate(seq, SimulationSettings(duration=duration, seed=seed, **kw)).validate()
             X_true, t_true, vis = cap.extras["X_true"], cap.extras["t_true"], cap.visible
-            opts = Options(noise_px=kw.get("noise", 0.0))
+            opts = base.replace(noise_px=kw.get("noise", 0.0))
             tic = time.perf_counter()
             r = reconstruct(cap, opts)
             sec = time.perf_counter() - tic
@@ -105,7 +114,7 @@ def run(
         "numpy": np.__version__,
         "duration_s": duration,
         "seed": seed,
-        "options": Options().to_dict(),
+        "options": base.to_dict(),
     }
     (out / "targets.json").write_text(json.dumps({"meta": meta, "runs": rows}, indent=2))
     return rows
@@ -120,8 +129,11 @@ def main() -> None:
     p.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     p.add_argument("--duration", type=float, default=3.0, help="seconds of each clip")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="solver option, as for dloe-sfm solve (e.g. stream_clocks=true)")
     a = p.parse_args()
-    rows = run(a.data, a.out, a.motions, a.settings, a.duration, a.seed)
+    base = load_options(overrides=a.overrides)
+    rows = run(a.data, a.out, a.motions, a.settings, a.duration, a.seed, base)
     print(f"{sum(r['pass'] for r in rows)} passed, {sum(not r['pass'] for r in rows)} failed")
 
 
