@@ -109,7 +109,7 @@ def fit_clocks(
     rhs: np.ndarray,
     visible: np.ndarray,
     *,
-    shared_rate: bool | None = None,
+    shared_rate: bool = False,
     spacings: tuple[float, ...] = SPACINGS,
     grid_steps: int = GRID_STEPS,
 ) -> np.ndarray:
@@ -178,7 +178,7 @@ def fit_clocks(
         return out
 
     x = refine(x, np.arange(free.size))
-    if shared_rate is not True:
+    if not shared_rate:
         x = refine(x, np.arange(x.size))
     return times(x)
 
@@ -187,9 +187,10 @@ def time_chain(times: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
     """(W, D) of the chain along ``times``: every image's row links its predecessor and successor
     with barycentric weights (constant-velocity motion is reproduced exactly); the first and last
     images have no row (D = 0) and are placed by their neighbours' rows."""
+    times = np.asarray(times, dtype=np.float64)
     n = times.size
     order = np.argsort(times, kind="stable")
-    t = np.asarray(times, dtype=np.float64)[order]
+    t = times[order]
     prev, mid, nxt = order[:-2], order[1:-1], order[2:]
     span = t[2:] - t[:-2]
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -523,7 +523,7 @@ def oracle_reconstruct(
     The first and last images have no neighbour on one side: their rows get D = 0, and they are
     placed by their neighbours' rows. Returns (N, P, 3) in world units.
     """
-    W, D = time_chain(np.asarray(times, dtype=np.float64))
+    W, D = time_chain(times)
     options = Options()
     X0 = initialise(capture, options)
     origin, scale = normalisation(capture, X0)
