@@ -3,13 +3,15 @@
 import logging
 
 from .core.capture import Capture
-from .core.options import Distance, Embedding, Options
+from .core.options import Clocks, Distance, Embedding, Options
 from .core.result import Result
 from .core.solver import reconstruct
 from .errors import InputError
 
 __version__ = "0.1.0"
-__all__ = ["Capture", "Distance", "Embedding", "InputError", "Options", "Result", "reconstruct"]
+__all__ = [
+    "Capture", "Clocks", "Distance", "Embedding", "InputError", "Options", "Result", "reconstruct"
+]
 
 logger = logging.getLogger("dloe_sfm")
 if not logger.handlers:

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from dloe_sfm.core.clocks import fit_clocks, ray_equations, spline_residuals, time_chain
-from dloe_sfm.core.options import Options
+from dloe_sfm.core.options import Clocks, Options
+from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import initialise, oracle_reconstruct, reconstruct
 from dloe_sfm.evaluate import point_errors
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
@@ -66,9 +67,18 @@ def test_stream_clocks_meet_the_sparse_target(sparse_walk):
     pseudo-triangulation (DLOE's own graph: 25.5 mm, 3.8 x the oracle)."""
     cap = sparse_walk
     X_true, vis = cap.extras["X_true"], cap.visible
-    r = reconstruct(cap, Options(stream_clocks=True))
+    r = reconstruct(cap)  # stream clocks: on by default with hard rays
     err = point_errors(r.X, X_true, vis)["error_mm"]
     oracle = point_errors(oracle_reconstruct(cap, cap.extras["t_true"]), X_true, vis)["error_mm"]
     init = point_errors(initialise(cap, Options()), X_true, vis)["error_mm"]
     assert err <= 2 * oracle + 3 and err <= 0.5 * init
-    assert r.timings["clocks"] > 0
+    assert r.timings["clocks"] > 0 and np.isfinite(r.clock).all()
+    assert kendall_tau(r.order, cap.extras["t_true"]) == pytest.approx(1.0)
+
+
+def test_stream_clocks_default_follows_the_ray_weight():
+    """``auto``: on with hard rays only; true / false spellings map to on / off."""
+    assert Options().clocks_on and not Options(noise_px=2.0).clocks_on
+    assert not Options(lambda2=1e3).clocks_on
+    assert Options(noise_px=2.0, stream_clocks=True).clocks_on
+    assert Options(stream_clocks="false").stream_clocks is Clocks.OFF

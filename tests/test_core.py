@@ -354,10 +354,11 @@ def test_soft_rays_average_the_noise(assets_dir):
 
 def test_soft_phase_stops_at_the_noise_level(assets_dir):
     """At 1 px the soft sweeps stop once the points' median residual is the noise's (the
-    discrepancy principle); running all of them (explicit lambda2) lets W fit the noise."""
+    discrepancy principle); running all of them (explicit lambda2) lets W fit the noise. The
+    alternation's own X: stream clocks would replace it."""
     cap = walking_capture(assets_dir, noise=1.0)
     X_true = cap.extras["X_true"]
-    opts = Options(noise_px=1.0, robust_loss="none")
+    opts = Options(noise_px=1.0, robust_loss="none", stream_clocks=False)
     stopped = reconstruct(cap, opts)
     lambda2 = opts.ray_weight(float(np.median(cap.K[:, 0, 0])))
     every = reconstruct(cap, opts.replace(lambda2=lambda2))
@@ -399,6 +400,7 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
     truth = np.r_[np.zeros(ia.size, int), np.ones(ib.size, int)]
     r = reconstruct(cap, Options())
     assert r.events.max() == 1
+    assert np.isfinite(r.clock).all()  # each event on its own two streams' clocks
     assert (r.events == truth).all() or (r.events != truth).all()
     coo = r.A.tocoo()
     assert (r.events[coo.row] == r.events[coo.col]).all()  # no edge between events

@@ -42,6 +42,10 @@ class Result:
         Seconds spent per stage (init, w_step, d_step, x_step, sequencing, ...).
     scale : float
         The normalisation length (median camera-to-scene distance, world units).
+    clock : (N,) float or None
+        With stream clocks (``Options.stream_clocks``): every image's time on its stream's
+        fitted clock, in frames of its event's longest stream (NaN in an event without them);
+        None when no event has them.
     subject_id, point_id : (P',) int or None
         With several subjects: column k of X is point ``point_id[k]`` of subject
         ``subject_id[k]`` (P' = subjects x P). None for one subject.
@@ -73,6 +77,7 @@ class Result:
     seconds: float
     timings: dict = field(default_factory=dict)
     scale: float = 1.0
+    clock: np.ndarray | None = None
     subject_id: np.ndarray | None = None
     point_id: np.ndarray | None = None
     assignment: np.ndarray | None = None

@@ -134,8 +134,11 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
     components of a W fitted in shape space to the initial shapes: time-line candidates would
     bridge events) and each event is sequenced and reconstructed on its own. With a robust loss
     (or symmetric pairs to check) the observations are then reweighted from the solution's
-    residuals and the capture re-solved (``_reweight``). A capture with several detections per
-    image goes to :func:`dloe_sfm.core.multitarget.reconstruct_subjects`.
+    residuals and the capture re-solved (``_reweight``). With stream clocks
+    (``options.clocks_on``) every event filmed by videos is finally placed on its streams'
+    fitted clocks (``_clocked``). A
+    capture with several detections per image goes to
+    :func:`dloe_sfm.core.multitarget.reconstruct_subjects`.
     """
     options = options or Options()
     if capture.x.ndim == 4:
@@ -149,7 +152,9 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
         labels = initial_events(capture, options, X_world)
     init_seconds = time.perf_counter() - started
     result = _solve_all(capture, options, labels, X_world)
-    result = _reweight(capture, options, labels, result)
+    result, solved = _reweight(capture, options, labels, result)
+    if options.clocks_on:
+        result = _clocked(solved, options, result)
     result.timings["init"] += init_seconds
     result.seconds = time.perf_counter() - started
     return result
@@ -165,7 +170,9 @@ def _solve_all(
     return _solve(capture, options, X_world)
 
 
-def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Result) -> Result:
+def _reweight(
+    capture: Capture, options: Options, labels: np.ndarray, result: Result
+) -> tuple[Result, Capture]:
     """Iteratively reweighted re-solves against wrong detections and left/right swaps.
 
     Each round predicts every observation from the graph (``W X``), exchanges symmetric pairs
@@ -178,13 +185,15 @@ def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Re
     helps nothing (sparse jumping: 92 mm with them dropped, 17 mm without). Stops when no pair
     was swapped and the rejected set changed by at most 0.1 % of the observations.
     ``result.outliers`` lists the observations the final solve left out, ``result.swaps``
-    every exchange kept.
+    every exchange kept. Also returns the capture the result was solved on (swaps undone,
+    observations reweighted).
     """
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
     if not robust and (pairs is None or pairs.size == 0):
-        return result
+        return result, capture
     current, swaps = capture, np.zeros((0, 3), dtype=np.int64)
+    solved = capture
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
     plain, expected = result, None
     for it in range(options.robust_iterations + 1):
@@ -193,7 +202,7 @@ def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Re
         if it == 1 and (fit := float(np.nanmedian(res[~rejected]))) > 0.95 * expected:
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
                         "%.2f -> %.2f px)", expected, fit)
-            result, current, swaps = plain, capture, swaps[:0]
+            result, current, swaps, solved = plain, capture, swaps[:0], capture
             rejected = np.zeros_like(rejected)
             break
         scale = loss_scale(res, options.robust_scale_px)
@@ -210,8 +219,8 @@ def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Re
         logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)",
                     it + 1, len(new), int(rejected.sum()), float(np.median(scale)))
         previous = result
-        result = _solve_all(reweighted(current, weights) if robust else current, options,
-                            labels, None)
+        solved = reweighted(current, weights) if robust else current
+        result = _solve_all(solved, options, labels, None)
         result.nit += previous.nit
         result.timings = {k: v + previous.timings.get(k, 0.0) for k, v in result.timings.items()}
     if swaps.size:
@@ -220,7 +229,7 @@ def _reweight(capture: Capture, options: Options, labels: np.ndarray, result: Re
     img, col = np.nonzero(rejected)
     result.outliers = np.stack([img, col], axis=1).astype(np.int64)
     result.outlier_residual_px = residuals_px(current, predicted(result.W, result.X))[img, col]
-    return result
+    return result, solved
 
 
 def shape_space_graph(capture: Capture, options: Options, X_world: np.ndarray) -> sp.csr_matrix:
@@ -445,16 +454,8 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
             )
     _, X, _, W, D = st.best
     t0 = time.perf_counter()
-    clock = _clock_times(X, prob, capture.frame, options)
-    if clock is not None:
-        # the chain's weights come from the time line: no compactness term (as the oracle)
-        W, D = time_chain(clock)
-        X = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=X)
-        f = clock
-        timings["clocks"] = time.perf_counter() - t0
-    else:
-        _, f = _sequence(X, prob, capture.frame, options, final=True)
-        timings["sequencing"] += time.perf_counter() - t0
+    _, f = _sequence(X, prob, capture.frame, options, final=True)
+    timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(D) @ W)
     return Result(
         X=X * scale + origin,
@@ -475,20 +476,69 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
     )
 
 
-def _clock_times(
-    X: np.ndarray, prob: Problem, frames: np.ndarray, options: Options
-) -> np.ndarray | None:
-    """(N,) times on the streams' fitted affine clocks (``core.clocks``), or None when they are
-    off or the capture is not all videos (two or more streams of three or more frames)."""
-    ids, counts = np.unique(prob.streams, return_counts=True)
-    if not options.stream_clocks or ids.size < 2 or counts.min() < 3:
-        return None
-    t0 = affine_time(X, prob.streams, frames)
-    if t0 is None:
-        return None
-    E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
-    return fit_clocks(t0, prob.streams, frames, E, rhs, prob.visible,
-                      shared_rate=options.shared_rate)
+def _clocked(capture: Capture, options: Options, result: Result) -> Result:
+    """``result`` with every event that is filmed by videos (two or more streams of three or
+    more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
+    the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), W, D
+    and the event's part of the order and embedding from the clocks. ``capture`` is the one
+    the result was solved on (``_reweight``); an event whose clocks the rays do not pin keeps
+    DLOE's graph. ``result.clock`` holds the times.
+    """
+    t_start = time.perf_counter()
+    n = capture.num_images
+    X = result.X.copy()
+    clock = np.full(n, np.nan)
+    keep = np.ones(n, dtype=bool)  # images whose W / D rows stay DLOE's
+    parts = []
+    order, embedding = result.order.copy(), result.embedding.copy()
+    rank = result.rank
+    for e in range(int(result.events.max()) + 1):
+        idx = np.flatnonzero(result.events == e)
+        ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
+        if ids.size < 2 or counts.min() < 3:
+            continue
+        sub = capture.subset(idx) if idx.size < n else capture
+        origin, scale = normalisation(sub, X[idx])
+        prob = build_problem(sub, options, origin, scale)
+        Xe = (X[idx] - origin) / scale
+        t0 = affine_time(Xe, prob.streams, sub.frame)
+        E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+        t = None if t0 is None else fit_clocks(t0, prob.streams, sub.frame, E, rhs, prob.visible,
+                                                shared_rate=options.shared_rate)
+        if t is None:
+            logger.info("event %d: the rays do not pin the streams' clocks (one moved by more "
+                        "than a frame period); DLOE's graph is kept", e)
+            continue
+        # the chain's weights come from the time line: no compactness term (as the oracle)
+        W, D = time_chain(t)
+        lambda2 = options.ray_weight(float(np.median(sub.K[:, [0, 1], [0, 1]])))
+        soft = np.isfinite(lambda2) and options.soft_iterations > 0
+        Xe = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=Xe)
+        X[idx], clock[idx], keep[idx] = Xe * scale + origin, t, False
+        coo = W.tocoo()
+        parts.append((coo.data, idx[coo.row], idx[coo.col], idx, D))
+        # the event's block of the order (events follow one another there), its embedding
+        # span kept and filled by the clock times
+        block = np.sort(rank[idx])
+        order[block] = idx[np.argsort(t, kind="stable")]
+        lo, hi = embedding[idx].min(), embedding[idx].max()
+        embedding[idx] = lo + (t - t.min()) * (hi - lo) / max(np.ptp(t), 1e-300)
+    if not parts:
+        result.timings["clocks"] = time.perf_counter() - t_start
+        return result
+    coo = result.W.tocoo()
+    kept = keep[coo.row]
+    data, rows, cols = (np.concatenate([v[kept], *(p[i] for p in parts)])
+                        for i, v in enumerate((coo.data, coo.row, coo.col)))
+    W = sp.csr_matrix((data, (rows, cols)), shape=(n, n))
+    D = result.D.copy()
+    for *_, idx, De in parts:
+        D[idx] = De
+    result.X, result.W, result.D, result.clock = X, W, D, clock
+    result.A = sp.csr_matrix(sp.diags(D) @ W)
+    result.order, result.embedding = order, embedding
+    result.timings["clocks"] = time.perf_counter() - t_start
+    return result
 
 
 def _discrepancy(
