@@ -136,8 +136,7 @@ def reconstruct(capture: Capture, options: Options | None = None) -> Result:
     (or symmetric pairs to check) the observations are then reweighted from the solution's
     residuals and the capture re-solved (``_reweight``). With stream clocks
     (``options.clocks_on``) every event filmed by videos is finally placed on its streams'
-    fitted clocks (``_clocked``). A
-    capture with several detections per image goes to
+    fitted clocks (``_clocked``). A capture with several detections per image goes to
     :func:`dloe_sfm.core.multitarget.reconstruct_subjects`.
     """
     options = options or Options()
@@ -479,19 +478,17 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
 def _clocked(capture: Capture, options: Options, result: Result) -> Result:
     """``result`` with every event that is filmed by videos (two or more streams of three or
     more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
-    the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), W, D
-    and the event's part of the order and embedding from the clocks. ``capture`` is the one
-    the result was solved on (``_reweight``); an event whose clocks the rays do not pin keeps
-    DLOE's graph. ``result.clock`` holds the times.
+    the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
+    W and D rows that chain's, its block of the order and its embedding (span kept) from the
+    clocks. ``capture`` is the one the result was solved on (``_reweight``); an event whose
+    clocks the rays do not pin keeps DLOE's graph. ``result.clock`` holds the times.
     """
     t_start = time.perf_counter()
     n = capture.num_images
-    X = result.X.copy()
+    X, D = result.X.copy(), result.D.copy()
+    order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
     clock = np.full(n, np.nan)
-    keep = np.ones(n, dtype=bool)  # images whose W / D rows stay DLOE's
-    parts = []
-    order, embedding = result.order.copy(), result.embedding.copy()
-    rank = result.rank
+    chains = []  # (data, rows, cols) of every clocked event's W
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
         ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
@@ -510,33 +507,25 @@ def _clocked(capture: Capture, options: Options, result: Result) -> Result:
                         "than a frame period); DLOE's graph is kept", e)
             continue
         # the chain's weights come from the time line: no compactness term (as the oracle)
-        W, D = time_chain(t)
+        W, D[idx] = time_chain(t)
         lambda2 = options.ray_weight(float(np.median(sub.K[:, [0, 1], [0, 1]])))
         soft = np.isfinite(lambda2) and options.soft_iterations > 0
-        Xe = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=Xe)
-        X[idx], clock[idx], keep[idx] = Xe * scale + origin, t, False
+        Xe = x_step(W, D[idx], prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=Xe)
+        X[idx], clock[idx] = Xe * scale + origin, t
         coo = W.tocoo()
-        parts.append((coo.data, idx[coo.row], idx[coo.col], idx, D))
-        # the event's block of the order (events follow one another there), its embedding
-        # span kept and filled by the clock times
-        block = np.sort(rank[idx])
-        order[block] = idx[np.argsort(t, kind="stable")]
+        chains.append((coo.data, idx[coo.row], idx[coo.col]))
+        order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
         lo, hi = embedding[idx].min(), embedding[idx].max()
         embedding[idx] = lo + (t - t.min()) * (hi - lo) / max(np.ptp(t), 1e-300)
-    if not parts:
-        result.timings["clocks"] = time.perf_counter() - t_start
-        return result
-    coo = result.W.tocoo()
-    kept = keep[coo.row]
-    data, rows, cols = (np.concatenate([v[kept], *(p[i] for p in parts)])
-                        for i, v in enumerate((coo.data, coo.row, coo.col)))
-    W = sp.csr_matrix((data, (rows, cols)), shape=(n, n))
-    D = result.D.copy()
-    for *_, idx, De in parts:
-        D[idx] = De
-    result.X, result.W, result.D, result.clock = X, W, D, clock
-    result.A = sp.csr_matrix(sp.diags(D) @ W)
-    result.order, result.embedding = order, embedding
+    if chains:
+        coo = result.W.tocoo()
+        dloe = np.isnan(clock)[coo.row]  # rows of the events left to DLOE's graph
+        chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
+        data, rows, cols = (np.concatenate(v) for v in zip(*chains, strict=True))
+        result.W = sp.csr_matrix((data, (rows, cols)), shape=(n, n))
+        result.A = sp.csr_matrix(sp.diags(D) @ result.W)
+        result.X, result.D, result.clock = X, D, clock
+        result.order, result.embedding = order, embedding
     result.timings["clocks"] = time.perf_counter() - t_start
     return result
 
