@@ -72,7 +72,7 @@ KENDALL_MOTIONS = ["walking_1", "walking_2", "basketball_1", "soccer_1", "jumpin
                    "basketball_signal_1", "directing_traffic_1"]
 
 METHODS = ["pseudo-triangulation", "TB", "HPF", "SEDL", "DLOE oracle", "DLOE no sequencing",
-           "DLOE"]
+           "DLOE graph only", "DLOE"]
 
 
 @dataclass(frozen=True)
@@ -126,7 +126,9 @@ def run_method(name: str, capture: Capture, options: Options) -> tuple[np.ndarra
     if name == "DLOE oracle":
         return oracle_reconstruct(capture, t_true), {}
     if name == "DLOE no sequencing":
-        options = options.replace(prior_weight=0.0, spectral_prior=False)
+        options = options.replace(prior_weight=0.0, spectral_prior=False, stream_clocks="off")
+    elif name == "DLOE graph only":  # the paper's method: no stream clocks
+        options = options.replace(stream_clocks="off")
     elif name != "DLOE":
         raise InputError(f"unknown method '{name}'")
     result = reconstruct(capture, options)
