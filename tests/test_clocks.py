@@ -26,8 +26,9 @@ def _equations(cap):
 def test_time_chain_reproduces_constant_velocity():
     t = np.array([0.3, 0.0, 0.5, 0.1, 0.9])
     W, D = time_chain(t)
-    assert np.allclose(W @ t, t * D)  # every row interpolates its own time exactly
-    assert D[[1, 4]].tolist() == [0.0, 0.0] and np.allclose(W.sum(axis=1).A.ravel(), D)
+    assert np.allclose((W @ t) * D, t * D)  # every inner row interpolates its own time exactly
+    assert D[[1, 4]].tolist() == [0.0, 0.0] and np.allclose(W.sum(axis=1).A.ravel(), 1.0)
+    assert W[1, 3] == 1.0 and W[4, 2] == 1.0  # the ends' rows: their one neighbour
 
 
 def test_spline_gradient_matches_finite_differences(sparse_walk):

@@ -5,7 +5,7 @@ the setting's noise level), and compare with the two yardsticks on the same capt
 (X-step with the true temporal chain, points pinned to their rays) and pseudo-triangulation.
 
     python pipelines/targets/pipeline.py [--data ../shared/data/mocap] [--out outputs/targets]
-        [--settings ...] [--set stream_clocks=true]
+        [--settings ...] [--set stream_clocks=off]
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=3.0, help="seconds of each clip")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="solver option, as for dloe-sfm solve (e.g. stream_clocks=true)")
+                   help="solver option, as for dloe-sfm solve (e.g. stream_clocks=off)")
     a = p.parse_args()
     base = load_options(overrides=a.overrides)
     rows = run(a.data, a.out, a.motions, a.settings, a.duration, a.seed, base)
