@@ -154,19 +154,20 @@ def fit_clocks(
     period = rate * float(np.median(np.diff(np.unique(f[inv == ref]))))
     start = float(t_init.min()) - 3 * period - max(hs)
 
-    def total(x: np.ndarray, h: float, cols: np.ndarray = np.s_[:]) -> float:
-        r = spline_residuals(times(x), E[:, cols], rhs[:, cols], visible[:, cols], h, start)
+    def total(x: np.ndarray, h: float, eq: tuple = (E, rhs, visible)) -> float:
+        r = spline_residuals(times(x), *eq, h, start)
         return float(r @ r)
 
     x = x0.copy()
     h_mid = hs[len(hs) // 2]
     steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:grid_points]
+    grid_eq = (E[:, seen], rhs[:, seen], visible[:, seen])
     for _ in range(3):  # coordinate sweeps until none moves
         before = x.copy()
         for c in range(free.size):
             trials = [x + d * (np.arange(x.size) == c) for d in steps]
-            x = trials[int(np.argmin([total(y, h_mid, seen) for y in trials]))]
+            x = trials[int(np.argmin([total(y, h_mid, grid_eq) for y in trials]))]
         if np.array_equal(x, before):
             break
     norms = [np.sqrt(total(x, h)) for h in hs]

@@ -434,8 +434,8 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
     prior_f, f = _sequence(X, prob, capture.frame, options)
     timings["sequencing"] += time.perf_counter() - t0
     st = _State(X=X, D=_degrees(f, prob, options), prior_f=prior_f, f=f)
-    lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
-    soft = np.isfinite(lambda2) and options.soft_iterations > 0
+    lambda2 = _soft_ray_weight(capture, options)
+    soft = np.isfinite(lambda2)
     total = options.max_iterations + (options.soft_iterations if soft else 0)
     with tqdm(
         total=total, desc="DLOE", unit="it", leave=False, disable=not options.progress
@@ -508,9 +508,8 @@ def _clocked(capture: Capture, options: Options, result: Result) -> Result:
             continue
         # the chain's weights come from the time line: no compactness term (as the oracle)
         W, D[idx] = time_chain(t)
-        lambda2 = options.ray_weight(float(np.median(sub.K[:, [0, 1], [0, 1]])))
-        soft = np.isfinite(lambda2) and options.soft_iterations > 0
-        Xe = x_step(W, D[idx], prob, lambda1=0.0, lambda2=lambda2 if soft else np.inf, X_prev=Xe)
+        Xe = x_step(W, D[idx], prob, lambda1=0.0, lambda2=_soft_ray_weight(sub, options),
+                    X_prev=Xe)
         X[idx], clock[idx] = Xe * scale + origin, t
         coo = W.tocoo()
         chains.append((coo.data, idx[coo.row], idx[coo.col]))
@@ -528,6 +527,13 @@ def _clocked(capture: Capture, options: Options, result: Result) -> Result:
         result.order, result.embedding = order, embedding
     result.timings["clocks"] = time.perf_counter() - t_start
     return result
+
+
+def _soft_ray_weight(capture: Capture, options: Options) -> float:
+    """The lambda2 of the soft-ray phase for this capture's median focal length; inf (hard rays
+    only) without a finite ray weight or with ``soft_iterations`` = 0."""
+    lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
+    return lambda2 if np.isfinite(lambda2) and options.soft_iterations > 0 else np.inf
 
 
 def _discrepancy(

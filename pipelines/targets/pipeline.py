@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dloe_sfm.benchmark import resolve_motion
 from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.sequencing import kendall_tau
@@ -68,7 +69,7 @@ def run(
     for name in settings:
         kw = SETTINGS[name]
         for m in motions:
-            seq = load_mocap(data / f"li2018_train_{m}.npz")
+            seq = load_mocap(resolve_motion(data, m))
             cap = simulate(seq, SimulationSettings(duration=duration, seed=seed, **kw)).validate()
             X_true, t_true, vis = cap.extras["X_true"], cap.extras["t_true"], cap.visible
             opts = base.replace(noise_px=kw.get("noise", 0.0))
