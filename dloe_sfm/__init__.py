@@ -13,12 +13,5 @@ __all__ = [
     "Capture", "Clocks", "Distance", "Embedding", "InputError", "Options", "Result", "reconstruct"
 ]
 
-logger = logging.getLogger("dloe_sfm")
-if not logger.handlers:
-    _handler = logging.StreamHandler()
-    _handler.setFormatter(
-        logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%Y/%m/%d %H:%M:%S")
-    )
-    logger.addHandler(_handler)
-    logger.setLevel(logging.INFO)
-    logger.propagate = False
+# a library only adds a NullHandler; the command line (``cli.setup_logging``) shows the logs
+logging.getLogger("dloe_sfm").addHandler(logging.NullHandler())

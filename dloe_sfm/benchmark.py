@@ -16,6 +16,7 @@ Every suite writes ``results.json`` (every run, settings, seeds, machine, git co
 from __future__ import annotations
 
 import argparse
+import importlib.resources
 import json
 import logging
 import multiprocessing as mp
@@ -54,11 +55,9 @@ from .synth import SimulationSettings, load_mocap, simulate
 
 logger = logging.getLogger("dloe_sfm")
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data" / "mocap"
-# a user's clone has no ../shared: the bundled clips (walking_1, jumping_1, basketball_signal_1)
-# still run the --quick grids and any suite restricted to them with --motions
-DEFAULT_DATA = SHARED_DATA if SHARED_DATA.is_dir() else REPO / "assets" / "mocap"
+# the bundled clips (walking_1, jumping_1, basketball_signal_1, package data) run the --quick
+# grids and any suite restricted to them with --motions; the full suites take --data (the CMU set)
+DEFAULT_DATA = Path(str(importlib.resources.files("dloe_sfm") / "assets" / "mocap"))
 DEFAULT_OUT = Path("outputs") / "benchmark"
 
 # ten CMU motions covering the paper's categories (running clips are only ~1.4 s long)
@@ -470,8 +469,9 @@ def machine_info() -> dict:
                 cpu = line.split(":", 1)[1].strip()
                 break
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True,
-                                text=True, timeout=10, check=True).stdout.strip() or None
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
+                                capture_output=True, text=True, timeout=10,
+                                check=True).stdout.strip() or None
     except (OSError, subprocess.SubprocessError):
         commit = None
     return {"platform": platform.platform(), "cpu_count": os.cpu_count(), "cpu_model": cpu,
@@ -496,8 +496,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     ----------
     suite : one of :data:`SUITES`.
     out : output directory (default ``outputs/benchmark/<suite>``).
-    data : folder of mocap ``.npz`` files (default ``../shared/data/mocap`` beside the repo, else
-        the bundled ``assets/mocap``).
+    data : folder of mocap ``.npz`` files (default: the bundled clips, ``assets/mocap``).
     quick : reduced grid (2 motions, 1 seed, 2 settings, 1 s clips) for smoke tests.
     seeds : number of random seeds per (motion, setting) (default 3, quick 1).
     motions : motion names (``walking_1`` or file stems / paths) instead of the suite's default.

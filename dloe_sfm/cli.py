@@ -5,8 +5,14 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import re
+import signal
 import sys
+import threading
 
+from tqdm import tqdm
+
+from . import __version__, progress
 from .errors import InputError
 
 # subcommand -> (module with ``configure_parser(parser)`` and ``run(args) -> int``, summary)
@@ -20,7 +26,20 @@ STAGES = {
     "evaluate": ("dloe_sfm.evaluate", "score a result against ground truth (mm, Kendall tau)"),
     "demo": ("dloe_sfm.demo", "run the whole chain on the bundled demo workspace"),
     "benchmark": ("dloe_sfm.benchmark", "the paper's experiments with every baseline"),
+    "import-calibration": ("dloe_sfm.import_calibration", "calibration file -> COLMAP model"),
+    "view": ("dloe_sfm.view", "play a reconstruct output in open3d's window (or write a GIF)"),
 }
+
+
+def _common_options(parser: argparse.ArgumentParser, *, top: bool) -> None:
+    """``-v`` / ``-q`` on the main parser and on every subcommand (either place works); a
+    subcommand's copy has no default, so it never resets what was given before it."""
+    default = {} if top else {"default": argparse.SUPPRESS}
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--verbose", "-v", action="store_true", help="debug logs (and COLMAP's)",
+                       **default)
+    group.add_argument("--quiet", "-q", action="store_true", help="warnings and errors only",
+                       **default)
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
@@ -29,10 +48,12 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         prog="dloe-sfm",
         description="Reconstruct moving points from asynchronous images on top of a COLMAP model.",
     )
-    parser.add_argument("--verbose", "-v", action="store_true", help="debug logs (and COLMAP's)")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    _common_options(parser, top=True)
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, summary) in STAGES.items():
         p = sub.add_parser(name, help=summary, description=summary)
+        _common_options(p, top=False)
         if name == command:
             module = importlib.import_module(module_name)
             module.configure_parser(p)
@@ -45,21 +66,73 @@ def run_stage(module_name: str, argv: list[str] | None = None) -> int:
     module = importlib.import_module(module_name)
     name = module_name if module_name != "__main__" else module.__spec__.name
     parser = argparse.ArgumentParser(prog=f"python -m {name}", description=module.__doc__)
-    parser.add_argument("--verbose", "-v", action="store_true")
+    _common_options(parser, top=True)
     module.configure_parser(parser)
     args = parser.parse_args(argv)
     return _execute(parser, module.run, args)
 
 
+class _BarSafeHandler(logging.StreamHandler):
+    """Writes each record through ``tqdm.write``, so a log line never lands on a progress bar."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            tqdm.write(self.format(record), file=self.stream)
+        except Exception:  # logging's own contract: a failing handler never raises
+            self.handleError(record)
+
+
+def setup_logging(*, verbose: bool = False, quiet: bool = False) -> None:
+    """The command line's logging: ``[time dloe_sfm LEVEL] message`` on stderr, INFO by
+    default, DEBUG with ``verbose`` (COLMAP's logs too), WARNING with ``quiet``. The library
+    itself only adds a ``NullHandler``; applications configure ``logging`` as they like."""
+    logger = logging.getLogger("dloe_sfm")
+    for handler in [h for h in logger.handlers if isinstance(h, _BarSafeHandler)]:
+        logger.removeHandler(handler)
+    handler = _BarSafeHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s",
+                                           "%Y/%m/%d %H:%M:%S"))
+    logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    logger.propagate = False
+
+
+# C0 / C1 controls (newlines, ESC of ANSI sequences) and Unicode line separators
+_CONTROL = re.compile("[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+
+
+def one_line(message: str) -> str:
+    """``message`` with control characters escaped (``\\n``, ``\\x1b``): always one line."""
+    return _CONTROL.sub(lambda m: m[0].encode("unicode_escape").decode("ascii"), message)
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like SIGINT's KeyboardInterrupt, so every ``finally``
+    (temporary outputs) runs; otherwise pycolmap's (glog's) handler prints a C++ stack trace."""
+
+
+def _terminate(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the cleanup
+    raise _Terminated
+
+
 def _execute(parser: argparse.ArgumentParser, run, args: argparse.Namespace) -> int:
-    if args.verbose:
-        logging.getLogger("dloe_sfm").setLevel(logging.DEBUG)
+    setup_logging(verbose=args.verbose, quiet=args.quiet)
+    if getattr(args, "progress", False) or sys.stderr.isatty():
+        progress.enable()
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
     try:
         return int(run(args) or 0)
     except InputError as e:
-        parser.exit(2, f"{parser.prog}: error: {e}\n")
+        parser.exit(2, f"{parser.prog}: error: {one_line(str(e))}\n")
+    except _Terminated:
+        parser.exit(143, "terminated\n")
     except KeyboardInterrupt:
         parser.exit(130, "interrupted\n")
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import re
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,13 +48,159 @@ def has_model(folder: Path) -> bool:
     )
 
 
+ROTATION_TOLERANCE = 1e-3
+"""Largest deviation of a pose's rotation from orthonormal that is accepted (and projected to
+SO(3)); COLMAP normalises quaternions only in models with frames."""
+
+
+class _BinaryFile:
+    """Walks a COLMAP .bin file: every count is checked against the bytes that are left, so a
+    truncated or corrupt file is refused before pycolmap allocates what it claims."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.data = path.read_bytes()
+        self.pos = 0
+
+    def _corrupt(self, what: str) -> InputError:
+        return InputError(f"{self.path.parent}: cannot read the COLMAP model ({self.path.name} "
+                          f"is truncated or corrupt: {what} at byte {self.pos} of "
+                          f"{len(self.data)})")
+
+    def take(self, fmt: str) -> tuple:
+        size = struct.calcsize("<" + fmt)
+        if self.pos + size > len(self.data):
+            raise self._corrupt("ends early")
+        values = struct.unpack_from("<" + fmt, self.data, self.pos)
+        self.pos += size
+        return values
+
+    def count(self, fmt: str, min_size: int) -> int:
+        """A count (struct ``fmt``) of entries of at least ``min_size`` bytes each."""
+        (n,) = self.take(fmt)
+        if n * min_size > len(self.data) - self.pos:
+            raise self._corrupt(f"{n} entries declared")
+        return n
+
+    def skip(self, size: int) -> None:
+        if self.pos + size > len(self.data):
+            raise self._corrupt("ends early")
+        self.pos += size
+
+    def string(self) -> None:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise self._corrupt("unterminated name")
+        self.pos = end + 1
+
+    def finish(self) -> None:
+        if self.pos != len(self.data):
+            raise self._corrupt(f"{len(self.data) - self.pos} unexpected bytes")
+
+
+def _camera_num_params() -> dict[int, int]:
+    return {
+        int(v): pycolmap.Camera.create_from_model_name(0, name, 1.0, 1, 1).params.size
+        for name, v in pycolmap.CameraModelId.__members__.items() if name != "INVALID"
+    }
+
+
+def _check_binary_model(model_dir: Path) -> None:
+    """Walk the structure of a binary model (reconstruction_io_binary.cc's layout)."""
+    num_params = _camera_num_params()
+    f = _BinaryFile(model_dir / "cameras.bin")
+    for _ in range(f.count("Q", 24)):
+        _, model_id, _, _ = f.take("iiQQ")
+        if model_id not in num_params:
+            raise f._corrupt(f"unknown camera model id {model_id}")
+        f.skip(8 * num_params[model_id])
+    f.finish()
+    if (model_dir / "rigs.bin").is_file():
+        f = _BinaryFile(model_dir / "rigs.bin")
+        for _ in range(f.count("Q", 8)):
+            f.take("I")
+            sensors = f.count("I", 8)
+            if sensors:
+                f.skip(8)
+            for _ in range(max(sensors - 1, 0)):
+                _, _, has_pose = f.take("iIB")
+                f.skip(56 if has_pose else 0)
+        f.finish()
+    if (model_dir / "frames.bin").is_file():
+        f = _BinaryFile(model_dir / "frames.bin")
+        for _ in range(f.count("Q", 68)):
+            f.skip(64)
+            f.skip(16 * f.count("I", 16))
+        f.finish()
+    f = _BinaryFile(model_dir / "images.bin")
+    for _ in range(f.count("Q", 73)):
+        f.skip(64)
+        f.string()
+        f.skip(24 * f.count("Q", 24))
+    f.finish()
+    f = _BinaryFile(model_dir / "points3D.bin")
+    for _ in range(f.count("Q", 51)):
+        f.skip(43)
+        f.skip(8 * f.count("Q", 8))
+    f.finish()
+
+
 def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     quiet_colmap()
     try:
+        if all((model_dir / f"{n}.bin").is_file() for n in MODEL_FILES):
+            _check_binary_model(model_dir)
         return pycolmap.Reconstruction(str(model_dir))
-    except (ValueError, RuntimeError) as e:
-        detail = str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__
+    except OSError as e:
+        raise InputError(f"{model_dir}: cannot read the COLMAP model ({e.strerror or e})") from None
+    except (ValueError, RuntimeError, IndexError, KeyError, OverflowError, MemoryError) as e:
+        if isinstance(e, InputError):
+            raise
+        lines = str(e).strip().splitlines()
+        detail = " ".join(lines[-1].split())[:200] if lines else type(e).__name__
         raise InputError(f"{model_dir}: cannot read the COLMAP model ({detail})") from None
+
+
+def _check_camera(camera: pycolmap.Camera, model_dir: Path) -> None:
+    """A camera the rays can come from: finite parameters, positive focal length(s)."""
+    params = np.asarray(camera.params, dtype=np.float64)
+    focal = params[list(camera.focal_length_idxs())]
+    where = f"{model_dir}: camera {camera.camera_id} ({camera.model_name})"
+    if not np.isfinite(params).all():
+        raise InputError(f"{where} has parameters that are not finite: {params.tolist()}")
+    if (focal <= 0).any():
+        raise InputError(f"{where} has focal length {focal.tolist()}; it must be positive")
+    if camera.width <= 0 or camera.height <= 0:
+        raise InputError(f"{where} has size {camera.width} x {camera.height} pixels")
+
+
+def _checked_poses(
+    rec: pycolmap.Reconstruction, names: Sequence[str], model_dir: Path
+) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """(R, t) world-to-camera of every registered image, R projected to SO(3) (SVD) when within
+    ``ROTATION_TOLERANCE`` of it, else an InputError naming the image."""
+    images = {im.name: im for im in rec.images.values() if im.has_pose}
+    poses, worst, worst_name = {}, 0.0, ""
+    for name in names:
+        pose = images[name].cam_from_world()
+        R = np.array(pose.rotation.matrix(), dtype=np.float64)
+        t = np.array(pose.translation, dtype=np.float64)
+        if not (np.isfinite(R).all() and np.isfinite(t).all()):
+            raise InputError(f"{model_dir}: image '{name}' has a pose that is not finite")
+        deviation = max(np.abs(R @ R.T - np.eye(3)).max(), abs(np.linalg.det(R) - 1))
+        if deviation > ROTATION_TOLERANCE:
+            raise InputError(
+                f"{model_dir}: image '{name}' has a rotation {deviation:.2g} from orthonormal "
+                f"(tolerance {ROTATION_TOLERANCE:g}; a quaternion that is not unit?)"
+            )
+        if deviation > worst:
+            worst, worst_name = deviation, name
+        u, _, vt = np.linalg.svd(R)
+        poses[name] = (u @ vt, t)
+    if worst > 1e-12:
+        logger.info("%s: rotations projected to SO(3), largest deviation %.2g (image '%s')",
+                    model_dir, worst, worst_name)
+    return poses
 
 
 @dataclass
@@ -87,6 +234,8 @@ class Workspace:
     static_xyz: np.ndarray
     static_rgb: np.ndarray
     reconstruction: pycolmap.Reconstruction = field(repr=False)
+    poses: dict[str, tuple[np.ndarray, np.ndarray]] = field(repr=False)
+    """(R, t) world-to-camera of every registered image, R exactly a rotation."""
     _image_ids: dict[str, int] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -127,11 +276,14 @@ class Workspace:
 
     def rotation(self, name: str) -> np.ndarray:
         """(3, 3) world-to-camera rotation."""
-        return np.array(self._image(name).cam_from_world().rotation.matrix(), dtype=np.float64)
+        self._image(name)
+        return self.poses[name][0].copy()
 
     def centre(self, name: str) -> np.ndarray:
         """(3,) camera centre in world coordinates."""
-        return np.array(self._image(name).projection_center(), dtype=np.float64)
+        self._image(name)
+        R, t = self.poses[name]
+        return -R.T @ t
 
     def pinhole(self, name: str) -> np.ndarray:
         """(3, 3) K of the ideal undistorted pinhole with the camera's focal length(s) and
@@ -180,8 +332,9 @@ class Workspace:
         """Project world points with distortion: X (P, 3) -> (P, 2) COLMAP pixel coordinates,
         NaN behind the camera."""
         X = np.asarray(X, dtype=np.float64).reshape(-1, 3)
-        T = self._image(name).cam_from_world().matrix()
-        cam = X @ T[:, :3].T + T[:, 3]
+        self._image(name)
+        R, t = self.poses[name]
+        cam = X @ R.T + t
         return np.asarray(self._camera(name).img_from_cam(np.ascontiguousarray(cam)),
                           dtype=np.float64)
 
@@ -252,6 +405,9 @@ def load_workspace(path: Path | str, *, image_dir: Path | str | None = None) -> 
     registered = sorted((im.name for im in rec.images.values() if im.has_pose), key=natural_key)
     if not registered:
         raise InputError(f"{model_dir}: the COLMAP model has no registered images")
+    for camera_id in sorted({im.camera_id for im in rec.images.values() if im.has_pose}):
+        _check_camera(rec.cameras[camera_id], model_dir)
+    poses = _checked_poses(rec, registered, model_dir)
     unposed = [im.name for im in rec.images.values() if not im.has_pose]
     img_dir = Path(image_dir) if image_dir is not None else _find_image_dir(root, model_dir)
     if img_dir is not None and not img_dir.is_dir():
@@ -274,6 +430,7 @@ def load_workspace(path: Path | str, *, image_dir: Path | str | None = None) -> 
     return Workspace(
         root=root, model_dir=model_dir, image_dir=img_dir, image_names=registered,
         unregistered=unregistered, static_xyz=xyz, static_rgb=rgb, reconstruction=rec,
+        poses=poses,
     )
 
 
@@ -357,7 +514,7 @@ def write_model(
         cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ C)
         image = pycolmap.Image(name=im.name, camera_id=im.camera + 1, image_id=j + 1)
         rec.add_image_with_trivial_frame(image, cam_from_world)
-    with atomic_path(path) as tmp:
+    with atomic_path(path, mark=True) as tmp:
         tmp.mkdir()
         if text:
             rec.write_text(str(tmp))

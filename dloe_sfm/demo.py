@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.resources
 import logging
 import time
 from pathlib import Path
@@ -15,7 +16,7 @@ from .reconstruct import main as reconstruct_main
 
 logger = logging.getLogger("dloe_sfm")
 
-DEMO = Path(__file__).resolve().parents[1] / "assets" / "demo"
+DEMO = Path(str(importlib.resources.files("dloe_sfm") / "assets" / "demo"))  # package data
 
 
 def score(out: Path, ground_truth: Path) -> dict[str, float]:
@@ -46,7 +47,8 @@ def main(
 ) -> dict[str, float]:
     """``dloe-sfm reconstruct`` on ``workspace`` (default: assets/demo) into ``out``; scores.
 
-    The demo owns ``out`` and replaces it on every run unless ``overwrite=False``.
+    The demo replaces its own previous output at ``out`` unless ``overwrite=False``; a folder
+    that dloe-sfm did not write is never replaced (``io.check_output``).
     """
     if not (workspace / "keypoints.csv").exists():
         raise InputError(f"{workspace}: not a demo workspace (no keypoints.csv)")
@@ -64,7 +66,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         "--out",
         type=Path,
         default=Path("outputs/demo"),
-        help="output folder (default: outputs/demo, replaced on every run)",
+        help="output folder (default: outputs/demo; the demo's previous output there is "
+        "replaced, any other folder is refused)",
     )
     parser.add_argument("--workspace", type=Path, default=DEMO, help=argparse.SUPPRESS)
     parser.add_argument("--no-plots", dest="plots", action="store_false", help="skip plots/")
@@ -82,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
         f" |Kendall tau| of the recovered order: {s['kendall_tau']:.4f}"
     )
     print(f"  point clouds: {out / 'frames'}/  (open3d / MeshLab)")
-    print(f"  trajectories: {out / 'trajectories.npz'}, {out / 'trajectories.csv'}")
+    print(f"  trajectories: {out / 'trajectories.npz'}, .csv, _wide.csv; "
+          f"OpenSim / C3D: {out / 'trajectories.trc'}, .c3d")
     print(f"  plots:        {out / 'plots'}/  report: {out / 'report.json'}")
     return 0
 

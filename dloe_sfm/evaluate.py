@@ -6,6 +6,7 @@ import argparse
 import itertools
 import json
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from .core.options import Options
 from .core.sequencing import kendall_tau
 from .core.solver import initialise, oracle_reconstruct
 from .errors import InputError
-from .io import load_capture, load_result
+from .io import atomic_path, load_capture, load_result
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -64,8 +65,9 @@ def evaluate(
     for key in ("X_true", "t_true"):
         if key not in capture.extras:
             raise InputError(f"capture has no ground truth '{key}' to evaluate against")
-    X_true, t_true = capture.extras["X_true"], capture.extras["t_true"]
     result = result or {}
+    _check_truth(capture, result)
+    X_true, t_true = capture.extras["X_true"], capture.extras["t_true"]
     out: dict[str, float] = {}
     vis = capture.visible
     if X_true.ndim == 4:  # several subjects: X_true (N, S, P, 3) by person
@@ -108,6 +110,52 @@ def evaluate(
     return out
 
 
+def _check_truth(capture: Capture, result: dict) -> None:
+    """Shapes and values of the ground truth and of the result's extra arrays, so that a bad
+    file is a one-line InputError naming the key."""
+    n, truth = capture.num_images, capture.extras
+    observations = capture.visible.shape
+
+    def need(ok: bool, key: str, what: str) -> None:
+        if not ok:
+            raise InputError(f"ground truth / result key '{key}' must be {what}")
+
+    X_true = truth["X_true"]
+    need(X_true.ndim in (3, 4) and X_true.shape[0] == n and X_true.shape[-1] == 3
+         and np.isfinite(X_true).all(), "X_true", f"finite, (N, P, 3) or (N, S, P, 3), N = {n}")
+    need(truth["t_true"].shape == (n,) and np.isfinite(truth["t_true"]).all(), "t_true",
+         f"finite, shape ({n},)")
+    integer = np.issubdtype
+    if "event_true" in truth:
+        e = truth["event_true"]
+        need(e.shape == (n,) and integer(e.dtype, np.integer) and (e >= 0).all(), "event_true",
+             f"non-negative integers, shape ({n},)")
+    if "outlier_true" in truth:
+        need(truth["outlier_true"].shape == observations, "outlier_true",
+             f"of shape {observations}")
+    if "swap_true" in truth and capture.symmetric_pairs is not None:
+        need(truth["swap_true"].shape == (n, len(capture.symmetric_pairs)), "swap_true",
+             f"of shape ({n}, {len(capture.symmetric_pairs)})")
+    if "subject_true" in truth:
+        st = truth["subject_true"]
+        need(st.shape == observations[:2] and integer(st.dtype, np.integer) and (st >= -1).all()
+             and (X_true.ndim != 4 or (st < X_true.shape[1]).all()), "subject_true",
+             f"integers in -1..S-1, shape {observations[:2]}")
+    if "outliers" in result:
+        o = result["outliers"]
+        need(o.ndim == 2 and o.shape[1] == len(observations) and (o >= 0).all()
+             and (o < np.array(observations)).all(), "outliers",
+             f"(K, {len(observations)}) indices into {observations}")
+    if "swaps" in result:
+        w = result["swaps"]
+        need(w.ndim == 2 and w.shape[1] == 3 and ((w[:, 0] >= 0) & (w[:, 0] < n)).all(),
+             "swaps", f"(K, 3) with images in 0..{n - 1}")
+    if "assignment" in result:
+        a = result["assignment"]
+        need(a.shape == observations[:2] and (a >= -1).all(), "assignment",
+             f"integers >= -1, shape {observations[:2]}")
+
+
 def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]:
     """Association of a several-subject result against ``subject_true`` and per-person errors."""
     if "assignment" not in result or "subject_true" not in capture.extras:
@@ -130,11 +178,16 @@ def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]
 
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
     """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth)."""
+    for p in (result, capture):
+        if out is not None and os.path.exists(out) and os.path.exists(p) and \
+                os.path.samefile(out, p):
+            raise InputError(f"{out}: the output is the input file {p}; choose another path")
     cap = load_capture(capture)
     res = load_result(result)
     scores = evaluate(cap, res["X"], res["order"], references=references, result=res)
     if out is not None:
-        Path(out).write_text(json.dumps(scores, indent=2))
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps(scores, indent=2))
     return scores
 
 

@@ -16,12 +16,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
-from tqdm import tqdm
 
+from . import progress
 from .core.capture import Capture, project
 from .core.result import Result
 from .errors import InputError
-from .io import atomic_path, save_npz
+from .io import atomic_path, check_output, save_npz
+from .mocap_export import write_mocap
 
 if TYPE_CHECKING:
     from .keypoints.base import Layout
@@ -254,7 +255,8 @@ def _check_shapes(capture: Capture, result: Result) -> None:
 
 def write_outputs(folder: Path, capture: Capture, result: Result, *,
                   static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
-                  layout: Layout | None = None, report: dict | None = None) -> dict:
+                  layout: Layout | None = None, report: dict | None = None,
+                  export_rate: float | None = None) -> dict:
     """Write the section-4 files into the existing folder ``folder`` (not atomic on its own).
 
     ``capture`` is the solver's input; the observations written and scored are those of
@@ -262,7 +264,9 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     subject ``result.subject_id[k]``: frames carry both ids, skeletons repeat per subject, and
     trajectories.npz has ``detection_subject`` (``detection_subjects``). static_xyz (M, 3)
     float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries (inputs,
-    parameters, stage timings, ...) are merged into ``report.json``. Returns the report.
+    parameters, stage timings, ...) are merged into ``report.json``. TRC / C3D / wide CSV:
+    ``mocap_export.write_mocap`` (``export_rate`` samples per reference frame; markers
+    ``s<subject>_<name>`` with several subjects). Returns the report.
     """
     detection_subject = detection_subjects(capture, result)
     capture = solved_capture(capture, result)
@@ -288,7 +292,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     (folder / "frames").mkdir()
     if edges.size:
         (folder / "skeleton").mkdir()
-    for i in tqdm(result.order, desc="export frames", unit="image", disable=n < 200):
+    for i in progress.bar(result.order, desc="export frames", unit="image", leave=False):
         stem = frame_file_stem(int(rank[i]), str(names[i]), n)
         finite = np.isfinite(result.X[i]).all(axis=1)
         if not finite.any():
@@ -333,12 +337,17 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                                  repr(float(y)), repr(float(z)), int(visible[i, k]),
                                  int(subject_id[k])])
 
+    times, mocap = write_mocap(folder, capture, result,
+                               [f"s{s}_{name}" for s, name in zip(subject_id, point_names,
+                                                                  strict=True)]
+                               if subjects else point_names, export_rate=export_rate)
+
     with open(folder / "sequence.csv", "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["rank", "image", "event", "stream", "frame"])
+        writer.writerow(["rank", "image", "event", "stream", "frame", "time"])
         for i in result.order:
             writer.writerow([int(rank[i]), names[i], int(result.events[i]), int(capture.stream[i]),
-                             int(capture.frame[i])])
+                             int(capture.frame[i]), repr(float(times[i]))])
 
     per_point = [{"point_id": int(point_id[k]), "subject_id": int(subject_id[k]),
                   "name": point_names[k], **error_stats(errors[:, k])} for k in range(p)]
@@ -369,6 +378,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         },
         "event_summaries": _event_summaries(capture, result, errors),
         "subject_summaries": _subject_summaries(capture, result, errors, subject_id),
+        "mocap_export": mocap,
         **robust,
     }
     full_report = _json_ready(full_report)
@@ -383,13 +393,11 @@ def export_outputs(out_dir: Path | str, capture: Capture, result: Result, *,
                    overwrite: bool = False) -> Path:
     """Write INTERFACES.md section 4 to ``out_dir`` atomically; returns ``out_dir``.
 
-    An existing ``out_dir`` is refused (InputError) unless ``overwrite``, in which case it is
-    replaced only once the new folder is complete.
+    An existing ``out_dir`` is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it
+    (``io.check_output``), in which case it is replaced only once the new folder is complete.
     """
     out_dir = Path(out_dir)
-    if out_dir.exists() and not overwrite:
-        raise InputError(f"{out_dir}: output folder exists (use --overwrite to replace it)")
-    with atomic_path(out_dir) as tmp:
+    with atomic_path(check_output(out_dir, overwrite=overwrite), mark=True) as tmp:
         tmp.mkdir()
         summary = write_outputs(tmp, capture, result, static_xyz=static_xyz, static_rgb=static_rgb,
                                 layout=layout, report=report)

@@ -13,12 +13,12 @@ import re
 from pathlib import PurePosixPath
 
 import numpy as np
-from tqdm import tqdm
 
+from . import progress
 from .colmap import Workspace, natural_key
 from .core.capture import Capture
 from .errors import InputError
-from .keypoints.base import Keypoints
+from .keypoints.base import Keypoints, quoted, shown
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -26,8 +26,8 @@ PERSON_MODES = ("largest", "all", "auto")
 
 
 def _some(names: list[str], limit: int = 5) -> str:
-    shown = ", ".join(f"'{n}'" for n in names[:limit])
-    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+    listed = ", ".join(quoted(n) for n in names[:limit])
+    return listed + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
 def _usable(pts: np.ndarray, min_score: float) -> np.ndarray:
@@ -49,8 +49,9 @@ def _box_area(pts: np.ndarray, min_score: float) -> float:
     ok = _usable(pts, min_score)
     if not ok.any():
         return -1.0
-    extent = pts[ok, :2].max(axis=0) - pts[ok, :2].min(axis=0)
-    return float(extent[0] * extent[1])
+    with np.errstate(over="ignore"):  # absurd pixels (1e308) give an infinite box
+        extent = pts[ok, :2].max(axis=0) - pts[ok, :2].min(axis=0)
+        return float(extent[0] * extent[1])
 
 
 def person_index(people: np.ndarray, person: str | int, min_score: float) -> int | None:
@@ -123,7 +124,8 @@ def assign_streams(
         for n in names:
             m = regex.search(n)
             if m is None:
-                raise InputError(f"image '{n}': does not match stream pattern {stream_pattern!r}")
+                raise InputError(f"image {quoted(n)}: does not match stream pattern "
+                                 f"{stream_pattern!r}")
             labels.append(m.group("stream"))
             frames_raw.append(m.group("frame"))
     order = sorted(set(labels), key=lambda s: natural_key(str(s)))
@@ -158,6 +160,9 @@ def _undistorted(ws: Workspace, name: str, pts: np.ndarray, min_score: float
         return None
     K = ws.pinhole(name)
     x = uv * np.diag(K)[:2] + K[:2, 2]
+    ok &= np.isfinite(x).all(axis=1)  # absurd pixels (1e308) overflow here
+    if not ok.any():
+        return None
     x[~ok] = np.nan
     return x, np.where(ok, np.clip(np.nan_to_num(pts[:, 2], nan=0.0), 0.0, 1.0), 0.0)
 
@@ -173,9 +178,14 @@ def build_capture(
     """The capture of every registered image with keypoints.
 
     Keypoints naming images the model does not know raise InputError, unless they hold no
-    detection (then they are only logged); unregistered images are logged and skipped.
+    detection (then they are only logged); unregistered images are logged and skipped. Images
+    without a usable detection (the detector found nobody, or only points below
+    ``min_score``) are left out with one warning and listed in ``extras["skipped_images"]``
+    (a list of names); only when no image is left is it an error.
 
     ``person``: ``"largest"`` (bounding box) or an index: one detection per image, x (N, P, 2);
+    an index beyond an image's detections leaves that image out (beyond every image's: an
+    error);
     ``"all"``: every usable detection (a quarter of the points or more with score >=
     ``min_score``), largest first, x (N, M, P, 2) with M the most in any image, empty slots NaN;
     ``"auto"``: ``"all"`` when >= 10 % of the images with a usable detection have several,
@@ -188,8 +198,10 @@ def build_capture(
     detection in the image's keypoint list (-1 = empty slot). When a COLMAP rig frame holds
     several of the images, ``extras["colmap_frame_id"]`` (N,) marks those taken together.
     """
-    source = str(kp.source) if kp.source is not None else "keypoints"
+    source = shown(kp.source) if kp.source is not None else "keypoints"
     person = _parse_person(person)
+    if not np.isfinite(min_score):
+        raise InputError(f"min_score must be a finite number, got {min_score}")
     registered = set(ws.image_names)
     unregistered = set(ws.unregistered)
     unknown = [k for k in kp.points if k not in registered and k not in unregistered]
@@ -216,13 +228,18 @@ def build_capture(
     for name in candidates:
         people = kp.points[name]
         if people.ndim != 3 or people.shape[1:] != (num_points, 3):
-            raise InputError(f"{source}: keypoints of '{name}' have shape {people.shape}, "
+            raise InputError(f"{source}: keypoints of {quoted(name)} have shape {people.shape}, "
                              f"expected (M, {num_points}, 3)")
+    if isinstance(person, int):
+        most = max((len(kp.points[n]) for n in candidates), default=0)
+        if person >= most:
+            raise InputError(f"person index {person}: no image holds more than {most} "
+                             "detection(s)")
     if person == "auto":
         person = _auto_person(kp, candidates, min_score)
     names, xs, Ks, Rs, Cs, confs, indices = [], [], [], [], [], [], []
     empty = []
-    for name in tqdm(candidates, desc="observations", unit="image", leave=False):
+    for name in progress.bar(candidates, desc="observations", unit="image", leave=False):
         people = kp.points[name]
         if person == "all":
             chosen = usable_people(people, min_score).tolist()
@@ -242,8 +259,8 @@ def build_capture(
         Rs.append(ws.rotation(name))
         Cs.append(ws.centre(name))
     if empty:
-        logger.info("%d image(s) without a usable detection (person=%s, min_score=%g), "
-                    "skipped: %s", len(empty), person, min_score, _some(empty))
+        logger.warning("%d image(s) without a usable detection (person=%s, min_score=%g), "
+                       "skipped: %s", len(empty), person, min_score, _some(empty))
     if not names:
         raise InputError(f"{source}: no usable observation in any registered image")
     slots = max(len(x) for x in xs)
@@ -261,7 +278,8 @@ def build_capture(
         raise InputError(f"{source}: point(s) {_some(missing)} observed in no image "
                          "(lower min_score or use a layout without them)")
     stream, frame = assign_streams(ws, names, stream_pattern)
-    extras = {"detection_index": detection if person == "all" else detection[:, 0]}
+    extras = {"detection_index": detection if person == "all" else detection[:, 0],
+              "skipped_images": empty}
     if any(ws.frame_size(n) > 1 for n in names):
         extras["colmap_frame_id"] = np.array([ws.frame_id(n) for n in names], dtype=np.int64)
     pairs = np.asarray(kp.layout.symmetric_pairs, dtype=np.int64).reshape(-1, 2)

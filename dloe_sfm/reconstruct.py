@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 import types
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from . import __version__, progress
 from .colmap import Workspace, load_workspace
 from .config import load_options
 from .core.capture import Capture
@@ -19,9 +20,10 @@ from .core.options import Options
 from .core.result import Result
 from .core.solver import reconstruct
 from .errors import InputError
-from .io import atomic_path
+from .io import atomic_path, check_output
 from .keypoints import FORMATS, Layout, load_layout, read_keypoints
 from .observations import PERSON_MODES, build_capture
+from .resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -41,16 +43,28 @@ def _person(value: str) -> str | int:
     return index
 
 
+def _positive_rate(value: str) -> float:
+    """``--export-rate``: a positive finite number."""
+    try:
+        rate = float(value)
+    except ValueError:
+        rate = math.nan
+    if not (math.isfinite(rate) and rate > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {value!r}")
+    return rate
+
+
 def write_plots(folder: Path, capture: Capture, result: Result, *,
                 workspace: Workspace | None = None,
                 edges: np.ndarray | None = None, point_names: list[str] | None = None,
                 num_overlays: int = 4) -> list[Path]:
-    """Sequence, affinity, event and trajectory plots, plus reprojection overlays on
-    ``num_overlays`` images spread over the estimated order when the workspace's image files
-    exist. ``edges`` (E, 2) and ``point_names`` (P,) are the layout's (point ids); with several
-    subjects, skeletons and trajectories are drawn per subject."""
+    """Sequence, affinity, event and trajectory plots, the animation (``animation.gif``, with
+    the workspace's static points), plus reprojection overlays on ``num_overlays`` images
+    spread over the estimated order when the workspace's image files exist. ``edges`` (E, 2)
+    and ``point_names`` (P,) are the layout's (point ids); with several subjects, skeletons
+    and trajectories are drawn per subject."""
     from . import viz  # matplotlib / cv2 only when plotting
-    from .export import column_edges, column_ids, frame_file_stem, solved_capture
+    from .export import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
 
     capture = solved_capture(capture, result)
     subject_id, point_id = column_ids(result)
@@ -65,6 +79,13 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
                               point_names=None if point_names is None else
                               [point_names[j] for j in point_id],
                               observed=capture.visible, subject_id=subjects),
+        viz.animate(result.X, result.order, folder / "animation.gif",
+                    image_names=capture.image_names, events=result.events, edges=edges,
+                    colors=point_colors(int(point_id.max()) + 1)[point_id], subject_id=subjects,
+                    observed=capture.visible,
+                    static_xyz=None if workspace is None else workspace.static_xyz,
+                    static_rgb=None if workspace is None else workspace.static_rgb,
+                    up=-capture.R[:, 1].mean(axis=0)),  # image up is -y of the camera
     ]
     if workspace is None or workspace.image_dir is None or num_overlays <= 0:
         return written
@@ -95,30 +116,30 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
 def export_reconstruction(out: Path, capture: Capture, result: Result, *,
                           workspace: Workspace | None = None, layout: Layout | None = None,
                           report: dict | None = None, overwrite: bool = False,
-                          plots: bool = True) -> dict:
+                          plots: bool = True, export_rate: float | None = None) -> dict:
     """Section-4 outputs (and ``plots/`` unless ``plots=False``) of a solved capture, written
     atomically to ``out``; static points and overlays come from ``workspace`` when given.
     Returns the report written to ``report.json``."""
     from .export import write_outputs  # open3d: 1 s to import, ``dloe-sfm`` loads every stage
 
-    out = Path(out)
-    if out.exists() and not (overwrite and out.is_dir()):
-        raise InputError(f"{out}: output path exists" + (" (use --overwrite to replace it)"
-                                                         if out.is_dir() else ""))
+    target = check_output(out, overwrite=overwrite, protected=[] if workspace is None else
+                          [workspace.model_dir, workspace.image_dir])
     tic = time.perf_counter()
-    with atomic_path(out) as tmp:
+    with atomic_path(target, mark=True) as tmp:
         tmp.mkdir()
         summary = write_outputs(
             tmp, capture, result, layout=layout, report=report,
             static_xyz=None if workspace is None else workspace.static_xyz,
             static_rgb=None if workspace is None else workspace.static_rgb,
+            export_rate=export_rate,
         )
         if plots:
             write_plots(tmp / "plots", capture, result, workspace=workspace,
                         edges=None if layout is None else
                         np.asarray(layout.edges, dtype=np.int64).reshape(-1, 2),
                         point_names=None if layout is None else list(layout.point_names))
-    logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz, report.json%s)",
+    logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz / .trc / .c3d, "
+                "report.json%s)",
                 time.perf_counter() - tic, out, ", plots/" if plots else "")
     error = summary["reprojection_error_px"]["all"]
     if error["mean"] is not None:
@@ -133,30 +154,41 @@ def export_reconstruction(out: Path, capture: Capture, result: Result, *,
 def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
          stream_pattern: str | None = None, min_score: float = 0.0,
          person: str | int = "auto", layout: str | Path | Layout | None = None,
+         aruco_dict: str | None = None,
          config: Path | None = None, overrides: list[str] | None = None,
-         options: Options | None = None, overwrite: bool = False, plots: bool = True) -> Path:
+         options: Options | None = None, overwrite: bool = False, plots: bool = True,
+         export_rate: float | None = None) -> Path:
     """Workspace + keypoints -> capture -> DLOE -> ``out`` (INTERFACES.md section 4).
 
     ``keypoints`` may be None for ``aruco`` (markers detected in the workspace's images).
     ``layout`` (names, skeleton, left/right pairs of the points; ``keypoints.load_layout``: a
     ``Layout``, a name or a JSON file) replaces the format's own; not for ``aruco``.
-    ``out`` is checked first (an existing folder is refused unless ``overwrite``) and written
-    atomically: on any error nothing is left at ``out``. Returns ``out``.
+    ``aruco_dict``: the ``aruco`` format's predefined ``cv2.aruco`` dictionary (default
+    DICT_4X4_50); only for ``aruco``.
+    ``export_rate``: samples per reference-stream frame of ``trajectories.trc`` / ``.c3d``
+    (``mocap_export``; default the fastest stream's rate).
+    ``out`` is checked first (``io.check_output``: never an input, an existing folder only
+    replaced with ``overwrite`` and when dloe-sfm wrote it, writable) and written atomically:
+    on any error nothing is left at ``out``. Returns ``out``.
     """
     out = Path(out)
-    if out.exists() and not (overwrite and out.is_dir()):
-        raise InputError(f"{out}: output path exists" + (" (use --overwrite to replace it)"
-                                                         if out.is_dir() else ""))
+    if aruco_dict is not None and fmt.lower() != "aruco":
+        raise InputError(f"--aruco-dict is only for --format aruco, not {fmt!r}")
     options = load_options(config, overrides, base=options)
     timings: dict[str, float] = {}
 
     tic = time.perf_counter()
     ws = load_workspace(workspace)
     timings["load_workspace"] = time.perf_counter() - tic
+    check_output(out, overwrite=overwrite, protected=[
+        ws.model_dir, ws.image_dir, keypoints, config,
+        layout if isinstance(layout, (str, Path)) else None,
+    ])
 
     tic = time.perf_counter()
     kp = read_keypoints(fmt, keypoints, workspace=ws,
-                        **({} if layout is None else {"layout": load_layout(layout)}))
+                        **({} if layout is None else {"layout": load_layout(layout)}),
+                        **({} if aruco_dict is None else {"dictionary": aruco_dict}))
     timings["read_keypoints"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -165,6 +197,7 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     timings["build_capture"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
+    check_solve_memory(capture, options, workspace)
     result = reconstruct(capture, options)
     timings["solve"] = time.perf_counter() - tic
     logger.info("DLOE: %s (%d iterations, %.2f s, %d event(s))", result.message, result.nit,
@@ -181,12 +214,13 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
             "min_score": min_score,
             "person": person,
             "unregistered_images": list(ws.unregistered),
+            "skipped_images": list(capture.extras["skipped_images"]),
         },
         "parameters": options.to_dict(),
         "timings": timings,
     }
     export_reconstruction(out, capture, result, workspace=ws, layout=kp.layout, report=report,
-                          overwrite=overwrite, plots=plots)
+                          overwrite=overwrite, plots=plots, export_rate=export_rate)
     return out
 
 
@@ -197,7 +231,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="keypoint file or folder (per the format); aruco: default images/")
     parser.add_argument("--format", dest="fmt", required=True, choices=list(FORMATS),
                         help="keypoint format")
-    parser.add_argument("--out", type=Path, required=True, help="output folder (must not exist)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output folder (must not exist, see --overwrite); never inside the "
+                             "workspace's images or model")
     parser.add_argument("--stream-pattern", metavar="REGEX",
                         help="regex with named groups (?P<stream>...) and (?P<frame>...) "
                              "searched in image names; default: one stream per COLMAP camera")
@@ -210,23 +246,33 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                              "images have several such detections, else 'largest')")
     parser.add_argument("--layout", metavar="NAME|FILE.json",
                         help="keypoint layout: a known name (BODY_25, BODY_25B, COCO_18, "
-                             "COCO_17) or a JSON file with point_names, edges, symmetric_pairs "
+                             "COCO_17, HALPE_26, COCO_WHOLEBODY, MEDIAPIPE_33) or a JSON file "
+                             "with point_names, edges, symmetric_pairs "
                              "(default: the format's own)")
+    parser.add_argument("--aruco-dict", metavar="NAME",
+                        help="--format aruco: the cv2.aruco predefined dictionary of the markers "
+                             "(default DICT_4X4_50; e.g. DICT_5X5_100, DICT_APRILTAG_36H11)")
     parser.add_argument("--config", type=Path, help="TOML file of solver options")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override one solver option (repeatable)")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an existing output folder")
+                        help="replace an existing output folder written by dloe-sfm (it holds "
+                             "a .dloe_sfm file); any other folder is refused")
     parser.add_argument("--no-plots", dest="plots", action="store_false", help="skip plots/")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    parser.add_argument("--export-rate", type=_positive_rate, metavar="RATE",
+                        help="samples per reference-stream frame of trajectories.trc / .c3d "
+                             "(default: the fastest stream's rate)")
+    parser.add_argument("--progress", action="store_true",
+                        help="show progress bars (default: only on a terminal)")
 
 
 def run(args: argparse.Namespace) -> int:
     out = main(args.workspace, args.keypoints, args.fmt, args.out,
                stream_pattern=args.stream_pattern, min_score=args.min_score, person=args.person,
-               layout=args.layout, config=args.config, overrides=args.overrides,
-               options=Options(progress=args.progress),
-               overwrite=args.overwrite, plots=args.plots)
+               layout=args.layout, aruco_dict=args.aruco_dict, config=args.config,
+               overrides=args.overrides,
+               options=Options(progress=progress.enabled()),
+               overwrite=args.overwrite, plots=args.plots, export_rate=args.export_rate)
     print(f"reconstruction written to {out}")
     return 0
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
+import os
 from dataclasses import fields
 from pathlib import Path
 
@@ -29,6 +31,15 @@ logger = logging.getLogger("dloe_sfm")
 MIXES = ("events", "people")
 
 
+def _check_fraction_or_distance(name: str, value: float, high: float) -> None:
+    """``--gap`` / ``--spacing`` (>= 0) and ``--outliers`` / ``--swaps`` (in [0, 1]): one
+    line naming the option; the capture's own settings check themselves
+    (``SimulationSettings``)."""
+    if not (isinstance(value, int | float) and math.isfinite(value) and 0 <= value <= high):
+        bound = "a finite number >= 0" if high == math.inf else f"in [0, {high:g}]"
+        raise InputError(f"--{name} must be {bound}, got {value!r}")
+
+
 def main(
     mocap: Path | list[Path],
     out: Path,
@@ -45,6 +56,13 @@ def main(
     ``people``: ``spacing`` metres apart); then ``outliers`` of the observations moved 20-100 px
     and ``swaps`` of the left/right pairs exchanged."""
     paths = [mocap] if isinstance(mocap, str | Path) else list(mocap)
+    for name, value, high in (("gap", gap, math.inf), ("spacing", spacing, math.inf),
+                              ("outliers", outliers, 1.0), ("swaps", swaps, 1.0)):
+        _check_fraction_or_distance(name, value, high)
+    for p in paths:
+        if os.path.exists(out) and os.path.exists(p) and os.path.samefile(out, p):
+            raise InputError(f"{out}: the output is the input mocap file {p}; choose another "
+                             "output path")
     seqs = [load_mocap(p) for p in paths]
     if len(seqs) == 1:
         capture = simulate(seqs[0], settings)

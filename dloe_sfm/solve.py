@@ -6,10 +6,12 @@ import argparse
 import logging
 from pathlib import Path
 
+from . import progress
 from .config import load_options
 from .core.options import Options
 from .core.solver import reconstruct
-from .io import load_capture, save_result
+from .io import check_output, load_capture, save_result
+from .resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -21,13 +23,15 @@ def main(
     config: Path | None = None,
     overrides: list[str] | None = None,
     options: Options | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
 ) -> Path:
-    """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns ``out``."""
+    """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns ``out``.
+
+    ``out`` is checked first (``io.check_output``): never an input; an existing file is only
+    replaced with ``overwrite`` and when it is a result file.
+    """
     out = Path(out)
-    if out.exists() and not overwrite:
-        logger.info("%s exists, skipping (overwrite=False)", out)
-        return out
+    target = check_output(out, protected=[capture, config], overwrite=overwrite, kind="file")
     options = load_options(config, overrides, base=options)
     cap = load_capture(capture)
     logger.info(
@@ -37,8 +41,9 @@ def main(
         cap.num_points,
         len(set(cap.stream_ids.tolist())),
     )
+    check_solve_memory(cap, options, capture)
     result = reconstruct(cap, options)
-    save_result(out, result)
+    save_result(target, result)
     logger.info(
         "%s: %s after %d iterations, %.2f s, %d event(s)",
         out,
@@ -53,6 +58,8 @@ def main(
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, help="capture.npz (INTERFACES.md section 1)")
     parser.add_argument("--out", type=Path, required=True, help="result.npz to write")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing result file (any other file is refused)")
     parser.add_argument("--config", type=Path, help="TOML file of solver options")
     parser.add_argument(
         "--set",
@@ -62,12 +69,14 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override one solver option (repeatable)",
     )
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    parser.add_argument("--progress", action="store_true",
+                        help="show progress bars (default: only on a terminal)")
 
 
 def run(args: argparse.Namespace) -> int:
-    base = Options(progress=args.progress)
-    main(args.capture, args.out, config=args.config, overrides=args.overrides, options=base)
+    base = Options(progress=progress.enabled())
+    main(args.capture, args.out, config=args.config, overrides=args.overrides, options=base,
+         overwrite=args.overwrite)
     return 0
 
 

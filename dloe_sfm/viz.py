@@ -1,7 +1,9 @@
-"""Plots (matplotlib, Agg backend) and image overlays (OpenCV) of a reconstruction, as PNG files."""
+"""Plots (matplotlib, Agg backend) and image overlays (OpenCV) of a reconstruction, as PNG
+files, and its animation as a GIF."""
 
 from __future__ import annotations
 
+import io
 import logging
 from pathlib import Path
 
@@ -9,9 +11,11 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 from matplotlib import colormaps
+from matplotlib.animation import AbstractMovieWriter
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
+from PIL import Image
 
 from .core import events as core_events
 from .core.capture import Capture
@@ -111,10 +115,11 @@ def plot_affinity(result: Result, path: Path | str) -> Path:
     return _save(fig, path)
 
 
-def plot_events(result: Result, path: Path | str) -> Path:
-    """Every event's images in the 2D spectral embedding of that event's graph (``core.events``;
-    the first coordinate orders an event in time), events side by side and coloured; the title
-    counts the graph's links between events (0 when they are disjoint)."""
+def events_figure(result: Result) -> Figure:
+    """The figure of ``plot_events``: every event's images in the 2D spectral embedding of that
+    event's graph (``core.events``; the first coordinate orders an event in time, scaled to
+    [-1, 1]), events side by side and coloured, each with its own ticks and its name above it;
+    the title counts the graph's links between events (0 when they are disjoint)."""
     labels, counts = np.unique(result.events, return_counts=True)
     A = sp.csr_matrix(result.A)
     coo = A.tocoo()
@@ -132,8 +137,12 @@ def plot_events(result: Result, path: Path | str) -> Path:
         colour = cmap(k) if labels.size <= 10 else cmap(k / (labels.size - 1))
         ax.scatter(xy[:, 0] + 2.5 * k, xy[:, 1], s=14, color=colour,
                    label=f"event {event} ({count} image{'s' * (count > 1)})")
-    ax.set_xticks([2.5 * k for k in range(labels.size)])
-    ax.set_xticklabels([f"event {e}" for e in labels.tolist()])
+    # each event's own coordinate (-1, 0, 1) below, its name above
+    ticks = [2.5 * k + u for k in range(labels.size) for u in (-1.0, 0.0, 1.0)]
+    ax.set_xticks(ticks, ["\u22121", "0", "1"] * labels.size)
+    ax.set_xlim(-1.4, 2.5 * (labels.size - 1) + 1.4)
+    top = ax.secondary_xaxis("top")
+    top.set_xticks([2.5 * k for k in range(labels.size)], [f"event {e}" for e in labels.tolist()])
     ax.set_xlabel("spectral coordinate 1 of each event's graph (its time line)")
     ax.set_ylabel("spectral coordinate 2")
     ax.set_title(f"{labels.size} event{'s' * (labels.size > 1)}, N = {result.events.size}: "
@@ -141,7 +150,12 @@ def plot_events(result: Result, path: Path | str) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best", ncol=1 + labels.size // 12)
     fig.tight_layout()
-    return _save(fig, path)
+    return fig
+
+
+def plot_events(result: Result, path: Path | str) -> Path:
+    """``events_figure`` saved as a PNG."""
+    return _save(events_figure(result), path)
 
 
 def _bgr(k: int) -> tuple[int, int, int]:
@@ -228,22 +242,26 @@ def plot_reprojection(image_path: Path | str, observed: np.ndarray, reprojected:
     return path
 
 
-def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
-                      points: list[int] | None = None, point_names: list[str] | None = None,
-                      observed: np.ndarray | None = None, max_points: int = 6,
-                      subject_id: np.ndarray | None = None) -> Path:
-    """3D trajectories of a few points along the estimated order.
+def trajectories_figure(X: np.ndarray, order: np.ndarray, *,
+                        points: list[int] | None = None, point_names: list[str] | None = None,
+                        observed: np.ndarray | None = None, max_points: int = 12,
+                        subject_id: np.ndarray | None = None) -> Figure:
+    """The figure of ``plot_trajectories``: 3D trajectories of the points along the estimated
+    order, one legend entry per point drawn.
 
     X (N, P, 3) world points, order (N,) image indices by estimated time, observed (N, P) bool,
     subject_id (P,) int: the subject of every point (colour per subject, a line style per point).
-    By default the ``max_points`` points (split between subjects) with the largest robust extent
-    (5th-95th percentile) among the most observed ones of their subject (seen in >= 80 % as many
-    images as its best) are drawn; circles mark the first image, squares the last. The view
-    spans the 1st-99th percentiles of the drawn positions: outliers beyond it are left out and
-    counted in the title.
+    Every point is drawn when P <= ``max_points``; else the ``max_points`` points (split between
+    subjects) with the largest robust extent (5th-95th percentile) among the most observed ones
+    of their subject (seen in >= 80 % as many images as its best), and the title says how many
+    of P are shown. Circles mark the first image, squares the last. The view spans the
+    1st-99th percentiles of the drawn positions: outliers beyond it are left out and counted in
+    the title.
     """
     X = np.asarray(X, dtype=np.float64)[np.asarray(order)]
     groups = np.zeros(X.shape[1], dtype=np.int64) if subject_id is None else subject_id
+    if points is None and X.shape[1] <= max_points:
+        points = list(range(X.shape[1]))
     if points is None:
         spread = np.nanpercentile(X, 95, axis=0) - np.nanpercentile(X, 5, axis=0)  # (P, 3)
         score = np.nan_to_num(np.linalg.norm(spread, axis=1))
@@ -269,21 +287,23 @@ def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
         tracks[outside] = np.nan
     fig = _figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
-    cmap = colormaps["tab10"]
+    cmap = colormaps["tab10" if len(points) <= 10 or subject_id is not None else "tab20"]
     subjects = np.unique(groups).tolist()
     for k, p in enumerate(points):
         track = tracks[:, k]
         valid = np.flatnonzero(np.isfinite(track).all(axis=1))
-        if not valid.size:
-            continue
         label = point_names[p] if point_names is not None else f"point {p}"
+        if not valid.size:
+            label += " (no finite position)"
         style = "-"
-        colour = cmap(k % 10)
+        colour = cmap(k % cmap.N)
         if subject_id is not None:
             label = f"subject {groups[p]}: {label}"
             colour = cmap(subjects.index(groups[p]) % 10)
             style = ("-", "--", ":", "-.")[int(np.sum(groups[points[:k]] == groups[p])) % 4]
         ax.plot(*track.T, style, color=colour, lw=1.3, label=label)
+        if not valid.size:
+            continue
         ax.scatter(*track[valid[0]], color=colour, marker="o", s=40)
         ax.scatter(*track[valid[-1]], color=colour, marker="s", s=40)
     if len(finite):
@@ -294,9 +314,169 @@ def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, *,
     ax.set_xlabel("x (model units)")
     ax.set_ylabel("y")
     ax.set_zlabel("z")
+    shown = (f"{len(points)} of {X.shape[1]} points (the widest moving)"
+             if len(points) < X.shape[1] else f"all {X.shape[1]} points")
     note = f", {outliers} outlying position(s) not drawn" if outliers else ""
-    ax.set_title(f"Trajectories along the estimated order ({X.shape[0]} images{note})\n"
+    ax.set_title(f"Trajectories along the estimated order: {shown}, {X.shape[0]} images{note}\n"
                  "o = first image, \u25a1 = last image")
-    ax.legend(fontsize=8, loc="upper left")
+    ax.legend(fontsize=8, loc="upper left", ncol=1 + len(points) // 16)
     fig.tight_layout()
-    return _save(fig, path)
+    return fig
+
+
+def plot_trajectories(X: np.ndarray, order: np.ndarray, path: Path | str, **kwargs) -> Path:
+    """``trajectories_figure`` (same keyword arguments) saved as a PNG."""
+    return _save(trajectories_figure(X, order, **kwargs), path)
+
+
+class GifWriter(AbstractMovieWriter):
+    """Animated GIF through Pillow (as matplotlib's ``PillowWriter``) with one palette for every
+    frame, taken from the first, middle and last frames plus the exact ``colors`` (K, 3) uint8
+    (at most 128; small marks would otherwise be merged with their surroundings): a pixel
+    that did not change keeps its palette index, so each GIF frame stores only what moved
+    (about ten times smaller and faster to encode than a palette per frame)."""
+
+    def __init__(self, *, fps: float, colors: np.ndarray | None = None):
+        super().__init__(fps=fps)
+        self.colors = np.zeros((0, 3), dtype=np.uint8) if colors is None else \
+            np.unique(np.asarray(colors, dtype=np.uint8).reshape(-1, 3), axis=0)[:128]
+
+    def setup(self, fig: Figure, outfile: Path | str, dpi: float | None = None) -> None:
+        super().setup(fig, outfile, dpi=dpi)
+        self.images: list[Image.Image] = []
+
+    def grab_frame(self, **savefig_kwargs) -> None:
+        buf = io.BytesIO()
+        self.fig.savefig(buf, **{**savefig_kwargs, "format": "rgba", "dpi": self.dpi})
+        self.images.append(Image.frombuffer("RGBA", self.frame_size, buf.getbuffer(), "raw",
+                                            "RGBA", 0, 1).convert("RGB"))
+
+    def finish(self) -> None:
+        picks = [self.images[k] for k in sorted({0, len(self.images) // 2, len(self.images) - 1})]
+        width, height = self.frame_size
+        mosaic = Image.new("RGB", (width, height * len(picks)))
+        for k, image in enumerate(picks):
+            mosaic.paste(image, (0, k * height))
+        scene = mosaic.quantize(colors=256 - len(self.colors), method=Image.Quantize.MEDIANCUT)
+        palette = Image.new("P", (1, 1))
+        palette.putpalette(scene.getpalette()[:3 * (256 - len(self.colors))]
+                           + self.colors.ravel().tolist())
+        frames = [image.quantize(palette=palette, dither=Image.Dither.NONE)
+                  for image in self.images]
+        frames[0].save(self.outfile, format="GIF", save_all=True, append_images=frames[1:],
+                       duration=round(1000 / self.fps), loop=0)
+
+
+def scene_box(X: np.ndarray, *, margin: float = 0.15) -> tuple[np.ndarray, float]:
+    """Centre (3,) and half side of a cube around the dynamic points X (..., 3): their
+    1st-99th percentiles per axis (a stray point does not stretch it) plus ``margin`` of the
+    largest side on each side; the unit cube at 0 when no position is finite."""
+    finite = np.asarray(X, dtype=np.float64).reshape(-1, 3)
+    finite = finite[np.isfinite(finite).all(axis=1)]
+    if not len(finite):
+        return np.zeros(3), 1.0
+    low, high = np.percentile(finite, 1, axis=0), np.percentile(finite, 99, axis=0)
+    side = max(float((high - low).max()), 1e-9)
+    return (low + high) / 2, side * (0.5 + margin)
+
+
+def crop_static(xyz: np.ndarray, rgb: np.ndarray | None, centre: np.ndarray, half: float, *,
+                max_points: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The static points xyz (M, 3) (colours rgb (M, 3) uint8) inside the cube ``centre`` +-
+    ``half``, at most ``max_points`` of them (a fixed random subset, seed 0)."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    keep = np.flatnonzero((np.abs(xyz - centre) <= half).all(axis=1))
+    if keep.size > max_points:
+        keep = np.sort(np.random.default_rng(0).choice(keep, max_points, replace=False))
+    return xyz[keep], None if rgb is None else np.asarray(rgb)[keep]
+
+
+def animation_frames(num_images: int, max_frames: int) -> np.ndarray:
+    """The ranks drawn by ``animate``: all of them, or ``max_frames`` evenly spread."""
+    if num_images <= max_frames:
+        return np.arange(num_images)
+    return np.unique(np.linspace(0, num_images - 1, max_frames).round().astype(np.int64))
+
+
+def animate(X: np.ndarray, order: np.ndarray, path: Path | str, *,
+            image_names: np.ndarray | None = None, events: np.ndarray | None = None,
+            edges: np.ndarray | None = None, colors: np.ndarray | None = None,
+            subject_id: np.ndarray | None = None, observed: np.ndarray | None = None,
+            static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
+            up: np.ndarray | None = None, max_frames: int = 150, width_px: int = 640,
+            fps: float = 10.0, max_static: int = 3000, trail: int = 8) -> Path:
+    """Animated GIF of the points and skeleton image by image in estimated order, around the
+    static points, on fixed equal-aspect axes.
+
+    X (N, P, 3) world points (NaN = none), order (N,) image indices by estimated time,
+    image_names (N,), events (N,) int, edges (E, 2) columns of X (``export.column_edges``),
+    colors (P, 3) uint8 (``export.point_colors``; default tab10), subject_id (P,) int (a
+    marker shape per subject), observed (N, P) bool (filled: detected, hollow: estimated),
+    static_xyz (M, 3) / static_rgb (M, 3) uint8: COLMAP's points, those in the cube of
+    ``scene_box`` (at most ``max_static``) drawn; a thin trail follows every point through
+    the ``trail`` images before (of its event). ``up`` (3,): the world's up direction
+    (e.g. the cameras' mean), its nearest axis drawn vertical; default z. At most
+    ``max_frames`` frames (``animation_frames``), ``width_px`` wide, ``fps`` frames a second.
+    """
+    X = np.asarray(X, dtype=np.float64)
+    order = np.asarray(order)
+    events = None if events is None else np.asarray(events)
+    n, p = X.shape[:2]
+    centre, half = scene_box(X)
+    drawn = np.where((np.abs(X - centre) <= half).all(axis=2, keepdims=True), X, np.nan)
+    colors = (np.asarray(colors, dtype=np.float64) / 255.0 if colors is not None
+              else np.array([colormaps["tab10"](k % 10)[:3] for k in range(p)]))
+    subjects = np.zeros(p, dtype=np.int64) if subject_id is None else np.asarray(subject_id)
+    markers = "o^sDvp<>h*"
+    marker_of = {s: markers[k % len(markers)] for k, s in enumerate(np.unique(subjects))}
+    edges = np.zeros((0, 2), dtype=np.int64) if edges is None else np.asarray(edges).reshape(-1, 2)
+
+    height_px = int(round(0.875 * width_px))
+    fig = _figure(figsize=(width_px / 100, height_px / 100), dpi=100)
+    ax = fig.add_subplot(projection="3d", computed_zorder=False)
+    ax.set_position((-0.04, -0.04, 1.08, 1.0))
+    axis = 2 if up is None else int(np.argmax(np.abs(up)))
+    ax.view_init(elev=18, azim=-60, vertical_axis="xyz"[axis])
+    # up along -axis: that axis and the next one reversed, a half turn (no mirror image)
+    flipped = (axis, (axis + 1) % 3) if up is not None and up[axis] < 0 else ()
+    for k, setter in enumerate((ax.set_xlim, ax.set_ylim, ax.set_zlim)):
+        low, high = centre[k] - half, centre[k] + half
+        setter((high, low) if k in flipped else (low, high))
+    ax.set_box_aspect((1, 1, 1))
+    # axis names but no tick labels: text is most of a 3D frame's drawing time
+    ax.set(xlabel="x", ylabel="y", zlabel="z", xticklabels=[], yticklabels=[], zticklabels=[])
+    if static_xyz is not None and len(static_xyz):
+        xyz, rgb = crop_static(static_xyz, static_rgb, centre, half, max_points=max_static)
+        ax.scatter(*xyz.T, s=2.5, c="0.6" if rgb is None else rgb / 255.0, alpha=0.7,
+                   depthshade=False, linewidths=0, zorder=1)
+    trails = [ax.plot([], [], [], "-", lw=0.8, alpha=0.6, color=colors[k], zorder=2)[0]
+              for k in range(p if trail > 0 else 0)]
+    bones = [ax.plot([], [], [], "-", lw=2.0, color=colors[a], zorder=2)[0] for a, _ in edges]
+    dots = [ax.plot([], [], [], ls="none", marker=marker_of[subjects[k]], ms=6, mew=1.2,
+                    color=colors[k], zorder=3)[0] for k in range(p)]
+    title = fig.text(0.5, 0.965, "", ha="center", va="top", fontsize=10)
+    if observed is not None:
+        fig.text(0.5, 0.925, "filled: detected in the image, hollow: estimated", ha="center",
+                 va="top", fontsize=7, color="0.3")
+
+    path = Path(path)
+    writer = GifWriter(fps=fps, colors=np.round(255 * colors))
+    with atomic_path(path) as tmp, writer.saving(fig, tmp, dpi=100):
+        for rank in animation_frames(n, max_frames).tolist():
+            i = int(order[rank])
+            recent = order[max(rank - trail, 0):rank + 1]
+            if events is not None:  # a trail never crosses into another event
+                recent = recent[events[recent] == events[i]]
+            for k, line in enumerate(trails):
+                line.set_data_3d(*drawn[recent, k].T)
+            for line, (a, b) in zip(bones, edges.tolist(), strict=True):
+                line.set_data_3d(*drawn[i, [a, b]].T)
+            for k, dot in enumerate(dots):
+                dot.set_data_3d(*drawn[i, k:k + 1].T)
+                seen = observed is None or bool(observed[i, k])
+                dot.set_markerfacecolor(colors[k] if seen else "none")
+            name = "" if image_names is None else f"{image_names[i]}   "
+            event = "" if events is None else f"   event {int(events[i])}"
+            title.set_text(f"{name}rank {rank} / {n - 1}{event}")
+            writer.grab_frame()
+    return path

@@ -10,6 +10,7 @@ import pytest
 from dloe_sfm import benchmark
 
 
+@pytest.mark.slow
 @pytest.mark.shared
 def test_noise_quick(shared_dir, tmp_path) -> None:
     out = tmp_path / "noise"

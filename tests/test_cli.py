@@ -127,7 +127,7 @@ def test_bad_captures_exit_2_and_write_nothing(capture_file, tmp_path, changes, 
     assert r.returncode == 2
     err = r.stderr.strip().splitlines()
     assert len(err) == 1 and message in err[0] and str(bad) in err[0], err
-    assert not out.exists() and list(tmp_path.glob(".result*")) == []
+    assert not out.exists() and list(tmp_path.glob(".dloe_sfm-tmp-*")) == []
 
 
 def test_not_an_npz(tmp_path):
@@ -145,7 +145,7 @@ def test_config_file_and_overrides(tmp_path):
     assert opts.lambda2 == 0.01 and opts.spectral_prior is True
     with pytest.raises(InputError, match="unknown option 'lamda1'"):
         load_options(None, ["lamda1=3"])
-    with pytest.raises(InputError, match="cannot take the value"):
+    with pytest.raises(InputError, match="'num_candidates' must be an integer in"):
         load_options(None, ["num_candidates=many"])
     cfg.write_text("num_candidates = [")
     with pytest.raises(InputError, match="invalid TOML"):
@@ -153,10 +153,36 @@ def test_config_file_and_overrides(tmp_path):
 
 
 def test_every_stage_has_help():
-    for stage in ("solve", "reconstruct", "simulate", "evaluate", "demo", "benchmark"):
+    from dloe_sfm.cli import STAGES
+
+    for stage in STAGES:
         r = dloe(stage, "--help")
         assert r.returncode == 0 and "usage" in r.stdout, (stage, r.stderr)
     r = subprocess.run(
         [sys.executable, "-m", "dloe_sfm.solve", "--help"], capture_output=True, text=True
     )
     assert r.returncode == 0 and "python -m dloe_sfm.solve" in r.stdout
+
+
+def test_version_logging_and_progress_follow_the_flags(capture_file, tmp_path):
+    from dloe_sfm import __version__
+
+    r = dloe("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"dloe-sfm {__version__}"
+    fast = ["--set", "max_iterations=5", "--set", "robust_iterations=0"]
+    # stderr is a pipe, not a terminal: logs (INFO by default), no progress bar
+    r = dloe("solve", capture_file, "--out", tmp_path / "a.npz", *fast)
+    assert r.returncode == 0 and "dloe_sfm INFO] solving" in r.stderr and "it/s" not in r.stderr
+    # -q after the subcommand: nothing below a warning
+    r = dloe("solve", capture_file, "--out", tmp_path / "b.npz", *fast, "-q")
+    assert r.returncode == 0 and "INFO" not in r.stderr, r.stderr
+    # --progress forces the bar, and it ends at 100 % although the solve stops early
+    r = dloe("solve", capture_file, "--out", tmp_path / "c.npz", *fast, "--progress", "-v")
+    assert r.returncode == 0 and "DEBUG" in r.stderr
+    bars = [part for part in r.stderr.replace("\r", "\n").splitlines() if part.startswith("DLOE")]
+    assert bars and "100%" in bars[-1], bars[-3:]
+    # the library itself only adds a NullHandler
+    code = ("import logging, dloe_sfm; h = logging.getLogger('dloe_sfm').handlers; "
+            "print([type(x).__name__ for x in h])")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.stdout.strip() == "['NullHandler']", r.stdout + r.stderr

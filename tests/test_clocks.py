@@ -63,6 +63,7 @@ def test_clocks_recover_stream_offsets(sparse_walk):
         assert (err.max() if shared else np.median(err)) < bound
 
 
+@pytest.mark.slow
 def test_stream_clocks_meet_the_sparse_target(sparse_walk):
     """7.5 Hz per stream, 30 % dropped, 30 % missing: within 2 x oracle + 3 mm and half the
     pseudo-triangulation (DLOE's own graph: 25.5 mm, 3.8 x the oracle)."""

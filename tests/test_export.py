@@ -173,9 +173,14 @@ def test_existing_out_dir_is_refused_unless_overwrite(tmp_path) -> None:
     (out / "keep.txt").write_text("user data")
     with pytest.raises(InputError, match="exists"):
         export_outputs(out, capture, result)
-    assert (out / "keep.txt").read_text() == "user data"
-    export_outputs(out, capture, result, overwrite=True)
-    assert not (out / "keep.txt").exists() and (out / "report.json").is_file()
+    with pytest.raises(InputError, match="not written by dloe-sfm"):
+        export_outputs(out, capture, result, overwrite=True)
+    assert [p.name for p in out.iterdir()] == ["keep.txt"]
+    (out / "keep.txt").unlink()
+    export_outputs(out, capture, result, overwrite=True)  # an empty folder
+    (out / "stale.txt").write_text("an earlier export")
+    export_outputs(out, capture, result, overwrite=True)  # our own output (.dloe_sfm marker)
+    assert not (out / "stale.txt").exists() and (out / "report.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
@@ -191,7 +196,7 @@ def test_failure_leaves_nothing_behind(tmp_path, monkeypatch) -> None:
         return real(*args, **kwargs)
 
     monkeypatch.setattr(export_module, "write_point_cloud", failing)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(InputError, match=r"out: cannot write it \(disk full\)"):
         export_outputs(tmp_path / "out", capture, result)
     assert list(tmp_path.iterdir()) == []
 

@@ -26,6 +26,7 @@ def load_pipeline(name: str) -> ModuleType:
     return module
 
 
+@pytest.mark.slow
 @pytest.mark.shared
 def test_lab_rig(shared_dir, tmp_path) -> None:
     lab_rig = load_pipeline("lab_rig")
@@ -69,6 +70,7 @@ def test_crowd_photos(shared_dir, tmp_path) -> None:
     assert (tmp_path / "crowd" / "workspace" / "images").resolve() == (data / "images").resolve()
 
 
+@pytest.mark.slow
 def test_multi_person(assets_dir, tmp_path) -> None:
     """Two people (shuffled OpenPose detections) and left/right swaps through the COLMAP stage:
     1.5 s of the bundled clips at 15 Hz (90 images); tolerances about 2 x the measured values

@@ -128,6 +128,7 @@ def test_find_swaps_on_an_exact_prediction(rng, clips):
     assert (hit == truth)[~close].all()
 
 
+@pytest.mark.slow
 def test_three_events_in_the_same_streams(clips):
     seqs = [clips[m] for m in MOTIONS]
     cap = simulate_events(seqs, QUICK)
@@ -146,6 +147,7 @@ def test_three_events_in_the_same_streams(clips):
     )
 
 
+@pytest.mark.slow
 def test_two_people_are_associated_and_reconstructed(clips):
     """Association and the aggregated DLOE solve (stream clocks off): each person within 1.3 x
     their solo solve. Stream clocks fitted on the aggregated capture then help both people
@@ -177,6 +179,7 @@ def test_two_people_are_associated_and_reconstructed(clips):
         assert np.array_equal(r.point_id[r.subject_id == k], np.arange(cap.num_points))
 
 
+@pytest.mark.slow
 def test_outliers_are_rejected(walking):
     cap, clean = walking
     bad = add_outliers(cap, 0.05, seed=1)
@@ -193,6 +196,7 @@ def test_outliers_are_rejected(walking):
     assert np.median(r.outlier_residual_px) >= 15.0  # the moves were 20-100 px
 
 
+@pytest.mark.slow
 def test_left_right_swaps_are_found(walking, clips):
     cap, clean = walking
     pairs = symmetric_pairs(clips["walking_1"].parents)

@@ -2,14 +2,47 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import InputError
 
+if TYPE_CHECKING:
+    from .options import Options
+
+logger = logging.getLogger("dloe_sfm")
+
 REQUIRED_KEYS = ("x", "K", "R", "C")
 OPTIONAL_KEYS = ("stream", "frame", "confidence", "image_names", "symmetric_pairs")
+ROTATION_TOLERANCE = 1e-3
+"""Largest deviation of a rotation from orthonormal (``|R R^T - I|``, ``|det R - 1|``) that is
+accepted and projected to SO(3); files written with single precision or rounded text are
+1e-7 .. 1e-5 off."""
+INDEX_LIMIT = 2**31 - 1
+"""Largest magnitude of a ``stream`` or ``frame`` value."""
+MIN_IMAGES = 3
+
+
+def field_shapes(x_shape: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
+    """The shape every per-image field must have given the shape of ``x``."""
+    n = x_shape[0]
+    return {"K": (n, 3, 3), "R": (n, 3, 3), "C": (n, 3), "stream": (n,), "frame": (n,),
+            "image_names": (n,), "confidence": tuple(x_shape[:-1])}
+
+
+def _integers(values: np.ndarray) -> np.ndarray:
+    """``values`` as int64 when they are all integers within ``INDEX_LIMIT``; otherwise float64,
+    left for :meth:`Capture.validate` to report."""
+    a = np.asarray(values)
+    if np.issubdtype(a.dtype, np.integer) and (np.abs(a) <= INDEX_LIMIT).all():
+        return a.astype(np.int64, copy=False)
+    f = a.astype(np.float64)
+    if np.isfinite(f).all() and (f == np.round(f)).all() and (np.abs(f) <= INDEX_LIMIT).all():
+        return f.astype(np.int64)
+    return f
 
 
 @dataclass(kw_only=True)
@@ -65,8 +98,8 @@ class Capture:
             self.stream = np.full(n, -1, dtype=np.int64)
         if self.frame is None:
             self.frame = np.zeros(n, dtype=np.int64)
-        self.stream = np.asarray(self.stream).astype(np.int64, copy=False)
-        self.frame = np.asarray(self.frame).astype(np.int64, copy=False)
+        self.stream = _integers(self.stream)
+        self.frame = _integers(self.frame)
         if self.confidence is not None:
             self.confidence = np.asarray(self.confidence, dtype=np.float64)
         if self.image_names is None:
@@ -89,22 +122,30 @@ class Capture:
         return self.x.shape[1] if self.x.ndim == 4 else 1
 
     def validate(self, source: str = "capture") -> Capture:
-        """Check shapes, finiteness and solvability; raise InputError naming the field."""
+        """Check shapes, values and solvability; raise InputError naming the field and image.
+
+        Rotations within ``ROTATION_TOLERANCE`` of orthonormal are projected to SO(3): the
+        returned capture carries the projected ones (the largest deviation is logged).
+        """
         x, K, R, C = self.x, self.K, self.R, self.C
         if x.ndim not in (3, 4) or x.shape[-1] != 2:
             raise InputError(
                 f"{source}: field 'x' must have shape (N, P, 2) or (N, M, P, 2), got {x.shape}"
             )
         n, p = x.shape[0], x.shape[-2]
-        if n < 2 or p < 1:
+        if n < MIN_IMAGES or p < 1:
             raise InputError(
-                f"{source}: field 'x' needs at least 2 images and 1 point, got {x.shape}"
+                f"{source}: field 'x' needs at least {MIN_IMAGES} images and 1 point, "
+                f"got {x.shape}"
             )
-        for name, arr, shape in (("K", K, (n, 3, 3)), ("R", R, (n, 3, 3)), ("C", C, (n, 3))):
-            if arr.shape != shape:
+        shapes = field_shapes(x.shape)
+        for name in ("K", "R", "C", "stream", "frame", "image_names", "confidence"):
+            arr = getattr(self, name)
+            if arr is not None and arr.shape != shapes[name]:
                 raise InputError(
-                    f"{source}: field '{name}' must have shape {shape}, got {arr.shape}"
+                    f"{source}: field '{name}' must have shape {shapes[name]}, got {arr.shape}"
                 )
+        for name, arr in (("K", K), ("R", R), ("C", C)):
             bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1)
             if bad.any():
                 raise InputError(
@@ -115,32 +156,16 @@ class Capture:
             raise InputError(
                 f"{source}: field 'x' has an infinite coordinate in image {self._name(i)}"
             )
-        det = np.linalg.det(R)
-        ortho = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-        bad = (np.abs(det - 1) > 1e-6) | (ortho > 1e-6)
-        if bad.any():
-            raise InputError(
-                f"{source}: field 'R' is not a rotation for image {self._name(np.argmax(bad))}"
-            )
-        if (np.abs(np.linalg.det(K)) < 1e-12).any():
-            raise InputError(
-                f"{source}: field 'K' is singular for image "
-                f"{self._name(np.argmax(np.abs(np.linalg.det(K)) < 1e-12))}"
-            )
-        for name, arr in (
-            ("stream", self.stream),
-            ("frame", self.frame),
-            ("image_names", self.image_names),
-        ):
-            if arr.shape != (n,):
+        self._check_intrinsics(source)
+        for name in ("stream", "frame"):
+            arr = getattr(self, name)
+            if not np.issubdtype(arr.dtype, np.integer):
+                bad = ~np.isfinite(arr) | (arr != np.round(arr)) | (np.abs(arr) > INDEX_LIMIT)
+                i = int(np.argmax(bad))
                 raise InputError(
-                    f"{source}: field '{name}' must have shape ({n},), got {arr.shape}"
+                    f"{source}: field '{name}' must hold integers within +-{INDEX_LIMIT}, "
+                    f"got {arr[i]} for image {self._name(i)}"
                 )
-        if self.confidence is not None and self.confidence.shape != x.shape[:-1]:
-            raise InputError(
-                f"{source}: field 'confidence' must have shape {x.shape[:-1]}, "
-                f"got {self.confidence.shape}"
-            )
         pairs = self.symmetric_pairs
         if pairs is not None and pairs.size and (
             (pairs < 0).any() or (pairs >= p).any() or (pairs[:, 0] == pairs[:, 1]).any()
@@ -165,7 +190,57 @@ class Capture:
             frames = self.frame[self.stream == s]
             if np.unique(frames).size != frames.size:
                 raise InputError(f"{source}: stream {s} has repeated values in field 'frame'")
-        return self
+        return self._with_rotations(source)
+
+    def _check_intrinsics(self, source: str) -> None:
+        """Positive focal lengths and a (0, 0, 1) bottom row (pinhole K) in every image."""
+        K = self.K
+        focal = np.stack([K[:, 0, 0], K[:, 1, 1]], axis=1)
+        bad = (focal <= 0).any(axis=1)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(
+                f"{source}: field 'K' has focal lengths ({focal[i, 0]:g}, {focal[i, 1]:g}) "
+                f"for image {self._name(i)}; they must be positive"
+            )
+        bad = np.abs(K[:, 2] - np.array([0.0, 0.0, 1.0])).max(axis=1) > 1e-9
+        if bad.any():
+            raise InputError(
+                f"{source}: field 'K' must have the bottom row (0, 0, 1) (a pinhole), got "
+                f"{K[int(np.argmax(bad)), 2].tolist()} for image {self._name(np.argmax(bad))}"
+            )
+        bad = np.abs(np.linalg.det(K)) < 1e-12
+        if bad.any():
+            raise InputError(
+                f"{source}: field 'K' is singular for image {self._name(np.argmax(bad))}"
+            )
+
+    def _with_rotations(self, source: str) -> Capture:
+        """Self with R projected to SO(3) (nearest rotation, by SVD) when it deviates."""
+        R = self.R
+        ortho = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+        deviation = np.maximum(ortho, np.abs(np.linalg.det(R) - 1))
+        worst = int(np.argmax(deviation))
+        if deviation[worst] > ROTATION_TOLERANCE:
+            raise InputError(
+                f"{source}: field 'R' is not a rotation for image {self._name(worst)} (deviates "
+                f"{deviation[worst]:.2g} from orthonormal, tolerance {ROTATION_TOLERANCE:g})"
+            )
+        if deviation[worst] <= 1e-12:
+            return self
+        u, _, vt = np.linalg.svd(R)
+        logger.info(
+            "%s: rotations projected to SO(3), largest deviation %.2g (image %s)",
+            source, deviation[worst], self._name(worst),
+        )
+        return replace(self, R=u @ vt)
+
+    def memory_estimate(self, options: Options) -> int:
+        """Bytes the solve of this capture needs at its peak, roughly (:func:`memory_estimate`)."""
+        return memory_estimate(
+            self.num_images, self.num_points, num_people=self.num_people,
+            num_streams=np.unique(self.stream_ids).size, num_candidates=options.num_candidates,
+        )
 
     def _name(self, i: int) -> str:
         return f"{int(i)} ('{self.image_names[int(i)]}')"
@@ -238,3 +313,24 @@ def project(X: np.ndarray, K: np.ndarray, R: np.ndarray, C: np.ndarray) -> np.nd
     cam = np.einsum("nij,npj->npi", R, X - C[:, None, :])
     h = np.einsum("nij,npj->npi", K, cam)
     return h[..., :2] / h[..., 2:3]
+
+
+def memory_estimate(
+    num_images: int, num_points: int, *, num_people: int = 1, num_streams: int = 1,
+    num_candidates: int = 8,
+) -> int:
+    """Bytes a solve needs at its peak beyond what is already loaded, roughly, on the high side.
+
+    The dominant arrays: the dense (N, N) ones of sequencing (arc distances, pair scores of the
+    initialisation, one image-to-image table per stream, the eigenproblem of an event), the
+    pair scores of the initialisation in blocks of 64 images (64, N, M P, 3), the W-step's
+    candidate shapes (N, k, 3 M P) and the per-observation arrays (N, M P).
+    """
+    n = int(num_images)
+    k = max(min(int(num_candidates), n - 1), 1)  # the solver clamps k to N - 1
+    obs = n * int(num_people) * int(num_points)
+    dense = (int(num_streams) + 8) * n * n
+    pairs = min(n, 64) * 17 * obs
+    candidates = 6 * k * 3 * obs
+    per_observation = 80 * obs
+    return 8 * (dense + pairs + candidates + per_observation) + (64 << 20)

@@ -51,7 +51,8 @@ def loss_weights(res: np.ndarray, scale: np.ndarray, loss: RobustLoss) -> np.nda
     """IRLS weights rho'(r) / r of residuals ``res`` (N, P) at (P,) ``scale``; 1 where NaN."""
     r = np.nan_to_num(res, nan=0.0) / scale
     if loss is RobustLoss.CAUCHY:
-        return 1.0 / (1.0 + r**2)
+        with np.errstate(over="ignore"):  # a tiny robust_scale_px: weight 1 / inf = 0
+            return 1.0 / (1.0 + r**2)
     if loss is RobustLoss.HUBER:
         return np.minimum(1.0, 1.0 / np.maximum(r, 1e-300))
     return np.ones_like(r)

@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 from tqdm.auto import tqdm
 
+from ..errors import InputError
 from .capture import Capture
 from .clocks import fit_clocks, ray_equations, time_chain
 from .events import segment_events
@@ -89,6 +90,11 @@ def initialise(capture: Capture, options: Options) -> np.ndarray:
         rays, capture.C, capture.stream_ids, capture.frame, min_angle=options.min_ray_angle
     )
     X0 = capture.C[:, None, :] + depths[..., None] * rays
+    if not np.isfinite(depths).any():
+        raise InputError(
+            f"no two images of different streams see a point at least {options.min_ray_angle:g} "
+            "degrees from (anti)parallel (option 'min_ray_angle'): nothing to triangulate"
+        )
     return fill_missing(X0, capture.stream_ids, capture.frame)
 
 
@@ -210,6 +216,12 @@ def _reweight(
         res = residuals_px(trial, X_pred)
         weights = loss_weights(res, scale, options.robust_loss)
         now = weights < 0.5
+        if now.sum() > 0.5 * current.visible.sum():
+            # a loss that drops most of the data is no longer rejecting outliers
+            logger.warning("robust round %d not run: the loss scale (%.3g px median) would drop "
+                           "%d of %d observations (robust_scale_px below the noise?)", it + 1,
+                           float(np.median(scale)), int(now.sum()), int(current.visible.sum()))
+            break
         settled = (now != rejected).sum() <= 1e-3 * current.visible.sum()
         if it == options.robust_iterations or (not new.size and settled):
             break
@@ -451,6 +463,8 @@ def _solve(capture: Capture, options: Options, X_world: np.ndarray | None = None
                 st, prob, capture.frame, options, lambda2, options.soft_iterations, timings, bar,
                 _discrepancy(capture, options, origin, scale),
             )
+        bar.total = bar.n  # converged before the iteration cap: the bar ends at 100 %
+        bar.refresh()
     _, X, _, W, D = st.best
     t0 = time.perf_counter()
     _, f = _sequence(X, prob, capture.frame, options, final=True)
@@ -531,9 +545,11 @@ def _clocked(capture: Capture, options: Options, result: Result) -> Result:
 
 def _soft_ray_weight(capture: Capture, options: Options) -> float:
     """The lambda2 of the soft-ray phase for this capture's median focal length; inf (hard rays
-    only) without a finite ray weight or with ``soft_iterations`` = 0."""
+    only) without a finite ray weight or with ``soft_iterations`` = 0. A weight beyond 1e12
+    pins the points to their rays to double precision anyway, and from about 1e18 the X-step's
+    system is singular: it is taken as inf too."""
     lambda2 = options.ray_weight(float(np.median(capture.K[:, [0, 1], [0, 1]])))
-    return lambda2 if np.isfinite(lambda2) and options.soft_iterations > 0 else np.inf
+    return lambda2 if lambda2 <= 1e12 and options.soft_iterations > 0 else np.inf
 
 
 def _discrepancy(

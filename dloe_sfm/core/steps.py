@@ -16,6 +16,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
+from ..errors import InputError
 from .simplex_qp import solve_simplex_qp
 
 
@@ -111,9 +112,11 @@ def select_candidates(
     (anti)parallel (the static-camera / opposite-camera degeneracy). With a 1-D ``features``
     (a time-line embedding) the k are split evenly before and after the image, so W interpolates
     between temporal neighbours instead of extrapolating from one side. The support of ``keep``
-    (previous W) is always included so a W-step never increases the cost.
+    (previous W) is always included so a W-step never increases the cost. A k beyond the N - 1
+    other images is taken as N - 1.
     """
     n = features.shape[0]
+    k = min(k, max(n - 1, 1))
     cos_max = np.cos(np.deg2rad(min_angle))
 
     def admissible(rows: np.ndarray, nb: np.ndarray) -> np.ndarray:
@@ -141,6 +144,12 @@ def select_candidates(
         srt[dup] = -1
         found = -np.sort(-srt, axis=1)
         found = found[:, : int((found >= 0).sum(axis=1).max())]
+    alone = int((found < 0).all(axis=1).sum())
+    if alone:
+        raise InputError(
+            f"{alone} of {n} images: no image of another stream views them at least "
+            f"{min_angle:g} degrees from (anti)parallel (option 'min_ray_angle')"
+        )
     return found
 
 

@@ -8,7 +8,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ..errors import InputError
-from .base import LAYOUTS, Keypoints, Layout, load_layout, match_names, rename_to_workspace
+from .base import (
+    LAYOUTS,
+    Keypoints,
+    Layout,
+    load_layout,
+    match_names,
+    quoted,
+    rename_to_workspace,
+    shown,
+)
 
 if TYPE_CHECKING:
     from ..colmap import Workspace
@@ -38,13 +47,13 @@ def read_keypoints(
     """
     module_name = FORMATS.get(fmt.lower())
     if module_name is None:
-        raise InputError(f"unknown keypoint format '{fmt}' (known: {', '.join(FORMATS)})")
+        raise InputError(f"unknown keypoint format {quoted(fmt)} (known: {', '.join(FORMATS)})")
     reader = importlib.import_module(module_name).read
     allowed = [p for p in inspect.signature(reader).parameters if p != "path"]
     unknown = [k for k in options if k not in allowed]
     if unknown:
         raise InputError(
-            f"keypoint format '{fmt}' has no option {', '.join(unknown)} "
+            f"keypoint format '{fmt}' has no option {shown(', '.join(unknown))} "
             f"(options: {', '.join(allowed) or 'none'})"
         )
     if path is None:
@@ -53,6 +62,6 @@ def read_keypoints(
         path = workspace.image_dir
     path = Path(path)
     if not path.exists():
-        raise InputError(f"{path}: no such keypoint file or folder")
+        raise InputError(f"{shown(path)}: no such keypoint file or folder")
     keypoints = reader(path, **options)
     return rename_to_workspace(keypoints, workspace) if workspace is not None else keypoints

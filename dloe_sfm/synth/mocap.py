@@ -8,6 +8,7 @@ Points are projected without clipping to the image bounds (as in the paper's exp
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from ..core.capture import Capture, project
 from ..errors import InputError
+from ..io import read_mocap
 
 
 @dataclass(kw_only=True)
@@ -41,17 +43,9 @@ def load_mocap(path: Path | str) -> MocapSequence:
     path = Path(path)
     if not path.exists():
         raise InputError(f"{path}: no such mocap file")
-    with np.load(path) as data:
-        for key in ("positions", "fps"):
-            if key not in data.files:
-                raise InputError(f"{path}: missing key '{key}'")
-        positions = data["positions"].astype(np.float64)
-        fps = float(data["fps"])
-        parents = (
-            data["parents"].astype(np.int64)
-            if "parents" in data.files
-            else np.full(positions.shape[1], -1)
-        )
+    positions, fps, parents = read_mocap(path)
+    if parents is None:
+        parents = np.full(positions.shape[1], -1)
     step = np.linalg.norm(np.diff(positions, axis=0), axis=2).max(axis=1)
     limit = 5 * np.percentile(step, 99)
     start = 0
@@ -82,6 +76,32 @@ class SimulationSettings:
     focal: float = 1000.0
     image_size: int = 1000
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        """Every knob in its range (one-line InputError naming it, e.g. ``--rate``)."""
+        def check(name: str, ok: bool, what: str) -> None:
+            if not ok:
+                raise InputError(f"--{name.replace('_', '-')} must be {what}, "
+                                 f"got {getattr(self, name)!r}")
+
+        finite = {k: isinstance(v, numbers.Real) and np.isfinite(v)
+                  for k, v in asdict(self).items() if v is not None}
+        check("rate", finite["rate"] and 0 < self.rate <= 1000, "in (0, 1000] frames/s")
+        integral = {k: isinstance(v, numbers.Integral) for k, v in asdict(self).items()}
+        check("num_streams", integral["num_streams"] and 1 <= self.num_streams <= 64,
+              "an integer in [1, 64]")
+        check("noise", finite["noise"] and self.noise >= 0, "a finite number >= 0 px")
+        check("missing", finite["missing"] and 0 <= self.missing < 1, "in [0, 1)")
+        check("drop", finite["drop"] and 0 <= self.drop < 1, "in [0, 1)")
+        check("duration", self.duration is None or (finite["duration"] and self.duration > 0),
+              "a number of seconds > 0")
+        check("start", finite["start"] and self.start >= 0, "a number of seconds >= 0")
+        check("radius", self.radius is None or (finite["radius"] and self.radius > 0),
+              "a distance > 0 m")
+        check("focal", finite["focal"] and self.focal > 0, "a focal length > 0 px")
+        check("image_size", integral["image_size"] and 16 <= self.image_size <= 100000,
+              "an integer in [16, 100000] px")
+        check("seed", integral["seed"] and self.seed >= 0, "an integer >= 0")
 
 
 def ring_cameras(

@@ -87,4 +87,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from dloe_sfm.cli import setup_logging
+
+    setup_logging()
     sys.exit(main())

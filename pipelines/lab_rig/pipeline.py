@@ -34,7 +34,7 @@ from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Options
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import error_stats, reprojection_errors
-from dloe_sfm.io import atomic_path, save_npz
+from dloe_sfm.io import atomic_path, check_output, save_npz
 from dloe_sfm.keypoints import Keypoints, read_keypoints
 from dloe_sfm.observations import build_capture, select_person
 from dloe_sfm.reconstruct import export_reconstruction
@@ -106,8 +106,7 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
     """The whole pipeline; returns the comparison table (also saved to ``out/comparison.json``)."""
     data, out = Path(data), Path(out)
     calib = data / "calibration" / "Calib.qca.txt"
-    if out.exists() and not overwrite:
-        raise InputError(f"{out}: output folder exists (use --overwrite to replace it)")
+    out = check_output(out, protected=[data], overwrite=overwrite)
     # OpenPose on 1088 x 1920 video: a few pixels of detection noise (see the README)
     options = load_options(None, overrides, base=Options(noise_px=5.0))
     tic = time.perf_counter()
@@ -120,7 +119,7 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
     logger.info("%d synchronised frames; asynchronous subset: every %d-th frame per camera, "
                 "%d images", frames.size, step, sum(map(len, kept.values())))
 
-    with atomic_path(out) as tmp:
+    with atomic_path(out, mark=True) as tmp:
         tmp.mkdir()
         model = import_calibration(
             calib, tmp / "workspace" / "sparse" / "0",
@@ -261,4 +260,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    from dloe_sfm.cli import setup_logging
+
+    setup_logging()
     sys.exit(main())

@@ -36,7 +36,7 @@ from dloe_sfm.benchmark import machine_info, resolve_motion
 from dloe_sfm.colmap import CameraSpec, ImageSpec, write_model
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.errors import InputError
-from dloe_sfm.io import atomic_path
+from dloe_sfm.io import atomic_path, check_output
 from dloe_sfm.keypoints import Layout
 from dloe_sfm.reconstruct import main as reconstruct_workspace
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
@@ -270,12 +270,11 @@ def main(out_dir: Path, *, data: Path | None = None, cases: tuple[str, ...] = CA
     unknown = sorted(set(cases) - set(CASES))
     if unknown:
         raise InputError(f"unknown case(s) {', '.join(unknown)} (known: {', '.join(CASES)})")
-    if out_dir.exists() and not overwrite:
-        raise InputError(f"{out_dir}: output folder exists (use --overwrite to replace it)")
+    out_dir = check_output(out_dir, protected=[data], overwrite=overwrite)
     settings = SimulationSettings(duration=duration, rate=rate, noise=noise, seed=seed)
     overrides = [f"noise_px={noise}"] if noise > 0 else []
     rows = []
-    with atomic_path(out_dir) as tmp:
+    with atomic_path(out_dir, mark=True) as tmp:
         tmp.mkdir()
         for case in cases:
             rows.append(run_case(case, tmp / case, data, settings, overrides, plots))
@@ -291,6 +290,8 @@ def main(out_dir: Path, *, data: Path | None = None, cases: tuple[str, ...] = CA
 
 
 if __name__ == "__main__":
+    from dloe_sfm.cli import setup_logging
+
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=REPO / "assets" / "mocap",
@@ -306,7 +307,7 @@ if __name__ == "__main__":
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--verbose", "-v", action="store_true", help="the stage's logs")
     args = parser.parse_args()
-    logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
+    setup_logging(quiet=not args.verbose)
     try:
         main(args.out, data=args.data, cases=tuple(args.cases), duration=args.duration,
              rate=args.rate, noise=args.noise, seed=args.seed, plots=args.plots,

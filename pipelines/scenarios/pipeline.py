@@ -247,6 +247,9 @@ def main(data: Path, out: Path, cases: list[str], duration: float, seed: int,
 
 
 if __name__ == "__main__":
+    from dloe_sfm.cli import setup_logging
+
+    setup_logging()
     repo = Path(__file__).resolve().parents[2]
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap")

@@ -139,4 +139,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    from dloe_sfm.cli import setup_logging
+
+    setup_logging()
     main()

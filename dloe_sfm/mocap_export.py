@@ -1,0 +1,283 @@
+"""Motion-capture exports of the points: TRC (OpenSim, Pose2Sim), C3D (ezc3d) and a wide CSV.
+
+Time. dloe_sfm knows no frame rates, so every image's time is counted in frames of its event's
+reference stream (the event's video with the most images), by the most faithful base the
+result holds, per event: ``clock`` (the streams' fitted affine clocks, ``Result.clock``),
+``affine embedding`` (the embedding is the streams' affine clocks: every stream's images lie
+on a line in their frame numbers), else ``rank`` (the reference stream's images at their
+frames, the others between them evenly by estimated order; an event without a video: one
+frame per image). Events are never bridged: a later event keeps its gap to the previous one
+when both are timed by the same stream, else it is placed two of its frames after it.
+
+TRC and C3D hold the points on a uniform time grid (default: the fastest stream's rate),
+linearly interpolated between a point's observations that are at most 1.5 frame periods of
+the event's slowest stream apart, empty elsewhere. Positions are in mm, taken from the model's
+units as metres (the calibration import and the simulator work in metres), in the model's
+frame as it is (not rotated to OpenSim's y-up).
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+import ezc3d
+import numpy as np
+
+from .core.capture import Capture
+from .core.result import Result
+from .errors import InputError
+
+MM_PER_UNIT = 1000.0
+"""Millimetres per model unit (the model's units are taken as metres)."""
+MAX_GAP_PERIODS = 1.5
+"""Longest interpolated gap between two observations of a point, in frame periods of the
+event's slowest stream."""
+EVENT_GAP_FRAMES = 2.0
+"""Separation of events whose relative timing is unknown, in reference frames."""
+MAX_POINT_SAMPLES = 10**7
+"""Largest grid (samples x points) written: a guard against a mistaken ``--export-rate``."""
+AFFINE_TOLERANCE = 1e-6
+"""Largest deviation of a stream's images from a line in their frame numbers (relative to the
+span) for the embedding to count as the streams' affine clocks."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Timeline:
+    """Estimated time of every image (module docstring).
+
+    time : (N,) float, in ``unit``; events : per event (in estimated order) its label, time
+    ``base``, ``reference_stream`` (None without a video), ``start`` / ``end`` time,
+    ``offset_known`` (its gap to the previous event is measured, not set) and ``max_gap``;
+    rate : the fastest stream's sampling rate, samples per ``unit``.
+    """
+
+    time: np.ndarray
+    unit: str
+    events: list[dict]
+    rate: float
+
+
+def _affine_times(u: np.ndarray, streams: np.ndarray, frames: np.ndarray,
+                  ref: int) -> np.ndarray | None:
+    """``u`` mapped to the reference stream's frames when every stream's images lie on a line
+    ``u = a + b frame`` (b > 0) and one stream has three or more images; else None."""
+    tol = AFFINE_TOLERANCE * max(float(np.ptp(u)), 1e-300)
+    lines = {}
+    for s in np.unique(streams):
+        m = streams == s
+        if np.unique(frames[m]).size < 2:
+            continue
+        b, a = np.polyfit(frames[m].astype(np.float64), u[m], 1)
+        if b <= 0 or np.abs(u[m] - (a + b * frames[m])).max() > tol:
+            return None
+        lines[int(s)] = (a, b, int(m.sum()))
+    if max(size for _, _, size in lines.values()) < 3:
+        return None
+    a, b, _ = lines[ref]
+    # the reference stream's images at their frames exactly (not a rounding off them)
+    return np.where(streams == ref, frames, (u - a) / b)
+
+
+def _rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray | None:
+    """(m,) times of an event's images in estimated order: the reference stream's at their
+    frames, the others evenly between them by rank (extrapolated at the ends); None when the
+    order contradicts the reference stream's frame order."""
+    pos = np.flatnonzero(streams == ref).astype(np.float64)
+    f = frames[streams == ref].astype(np.float64)
+    if (np.diff(f) <= 0).any():
+        return None
+    slope = (f[-1] - f[0]) / (pos[-1] - pos[0])
+    rank = np.arange(streams.size, dtype=np.float64)
+    t = np.interp(rank, pos, f)
+    return np.where(rank < pos[0], f[0] - (pos[0] - rank) * slope,
+                    np.where(rank > pos[-1], f[-1] + (rank - pos[-1]) * slope, t))
+
+
+def image_times(capture: Capture, result: Result) -> Timeline:
+    """Every image's time in reference frames and the export's default rate (module docstring).
+
+    ``capture`` is the one ``result.X`` refers to (``export.solved_capture``).
+    """
+    n = capture.num_images
+    rank = result.rank
+    stream_ids = capture.stream_ids
+    time = np.empty(n)
+    periods = []
+    summaries = []
+    prev = None
+    firsts = [int(rank[result.events == e].min()) for e in np.unique(result.events)]
+    for e in np.unique(result.events)[np.argsort(firsts)]:
+        idx = np.flatnonzero(result.events == e)
+        idx = idx[np.argsort(rank[idx])]
+        streams, frames = stream_ids[idx], capture.frame[idx]
+        ids, counts = np.unique(streams, return_counts=True)
+        videos = [s for s in ids if np.unique(frames[streams == s]).size >= 2]
+        ref = max(videos, key=lambda s: (counts[ids == s][0], -s)) if videos else None
+        t, base = None, "rank"
+        if ref is not None:
+            clocked = result.clock is not None and np.isfinite(result.clock[idx]).all()
+            u = result.clock[idx] if clocked else result.embedding[idx]
+            t = _affine_times(u, streams, frames, ref)
+            if t is not None and (np.diff(t) >= -AFFINE_TOLERANCE * np.ptp(t)).all():
+                base = "clock" if clocked else "affine embedding"
+            else:
+                t = _rank_times(streams, frames, ref)
+        if t is None:
+            t, ref = np.arange(idx.size, dtype=np.float64), None
+            event_periods = [1.0]
+        else:
+            slopes = [float(np.polyfit(frames[streams == s], t[streams == s], 1)[0])
+                      for s in videos]
+            event_periods = [p for p in slopes if p > 0] or [1.0]
+        offset_known = (prev is not None and ref is not None and ref == prev["reference_stream"]
+                        and t.min() > prev["end"])
+        if prev is not None and not offset_known:
+            t = t - t.min() + prev["end"] + EVENT_GAP_FRAMES
+        time[idx] = t
+        periods += event_periods
+        prev = {"event": int(e), "base": base, "reference_stream": None if ref is None
+                else int(ref), "start": float(t.min()), "end": float(t.max()),
+                "offset_known": bool(offset_known),
+                "max_gap": MAX_GAP_PERIODS * max(event_periods)}
+        summaries.append(prev)
+    rate = 1.0 / min(periods)
+    # streams within 1 % of the reference's rate: sample on the reference's frames
+    return Timeline(time=time, unit="frame", events=summaries,
+                    rate=1.0 if abs(rate - 1.0) < 0.01 else rate)
+
+
+def resample_uniform(t: np.ndarray, X: np.ndarray, valid: np.ndarray, rate: float, *,
+                     segments: np.ndarray | None = None,
+                     max_gap: float | np.ndarray = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a uniform time grid, linear between samples, empty across unsupported gaps.
+
+    t (M,) sample times, X (M, P, 3), valid (M, P) bool: the samples a point may be
+    interpolated from (non-finite ones are never used); rate: grid samples per unit of t.
+    ``segments`` (M,) int labels 0..S-1 (default: one): a point is never interpolated between
+    samples of different segments, nor between two samples more than ``max_gap`` (a float or
+    (S,) per segment) apart; at a grid instant equal to a lone sample's time it takes that
+    sample (duplicates averaged). Returns the grid (K,), from ``t.min()`` through ``t.max()``,
+    and Y (K, P, 3), NaN where no pair of samples supports the instant.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    segments = np.zeros(t.size, dtype=np.int64) if segments is None else np.asarray(segments)
+    gaps = np.broadcast_to(np.asarray(max_gap, dtype=np.float64), (int(segments.max()) + 1,))
+    count = int(np.floor((t.max() - t.min()) * rate * (1 + 1e-12))) + 1
+    grid = t.min() + np.arange(count) / rate
+    Y = np.full((count, X.shape[1], 3), np.nan)
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(X).all(axis=2)
+    for s in np.unique(segments):
+        for k in range(X.shape[1]):
+            m = (segments == s) & valid[:, k]
+            if not m.any():
+                continue
+            ts, inverse = np.unique(t[m], return_inverse=True)
+            xs = np.zeros((ts.size, 3))
+            np.add.at(xs, inverse, X[m, k])
+            xs /= np.bincount(inverse, minlength=ts.size)[:, None]
+            inside = np.flatnonzero((grid >= ts[0]) & (grid <= ts[-1]))
+            g = grid[inside]
+            right = np.searchsorted(ts, g, side="left")  # ts[right - 1] < g <= ts[right]
+            exact = ts[right] == g
+            left = np.maximum(right - 1, 0)
+            span = ts[right] - ts[left]
+            w = (g - ts[left]) / np.where(exact, 1.0, span)
+            value = np.where(exact[:, None], xs[right],
+                             xs[left] + w[:, None] * (xs[right] - xs[left]))
+            ok = exact | (span <= gaps[s])
+            Y[inside[ok], k] = value[ok]
+    return grid, Y
+
+
+def write_trc(path: Path, grid: np.ndarray, Y_mm: np.ndarray, names: list[str],
+              rate: float) -> Path:
+    """OpenSim / Pose2Sim TRC: grid (K,) times, Y_mm (K, P, 3) mm (NaN: empty fields)."""
+    count, num = Y_mm.shape[:2]
+    rate = float(rate)
+    lines = [
+        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame"
+        "\tOrigNumFrames",
+        f"{rate!r}\t{rate!r}\t{count}\t{num}\tmm\t{rate!r}\t1\t{count}",
+        "Frame#\tTime" + "".join(f"\t{name}\t\t" for name in names),
+        "\t" + "".join(f"\tX{k}\tY{k}\tZ{k}" for k in range(1, num + 1)),
+        "",
+    ]
+    for row, (time, values) in enumerate(zip(grid.tolist(), Y_mm.reshape(count, -1).tolist(),
+                                             strict=True), start=1):
+        cells = ("" if v != v else repr(v) for v in values)  # NaN: empty
+        lines.append(f"{row}\t{time!r}\t" + "\t".join(cells))
+    Path(path).write_text("\n".join(lines) + "\n")
+    return Path(path)
+
+
+def write_c3d(path: Path, grid: np.ndarray, Y_mm: np.ndarray, names: list[str], rate: float,
+              *, unit: str, note: str) -> Path:
+    """C3D through ezc3d: points (K, P, 3) mm (NaN: invalid, residual -1 in the file),
+    POINT:RATE ``rate`` per ``unit``; group DLOE_SFM holds TIME_UNIT, START_TIME, NOTE."""
+    c3d = ezc3d.c3d()
+    c3d["parameters"]["POINT"]["RATE"]["value"] = [float(rate)]
+    c3d["parameters"]["POINT"]["LABELS"]["value"] = tuple(names)
+    points = np.ones((4, Y_mm.shape[1], Y_mm.shape[0]))
+    points[:3] = np.transpose(Y_mm, (2, 1, 0))
+    points[:, ~np.isfinite(points[:3]).all(axis=0)] = np.nan
+    c3d["data"]["points"] = points
+    c3d.add_parameter("POINT", "UNITS", "mm")
+    c3d.add_parameter("DLOE_SFM", "TIME_UNIT", unit)
+    c3d.add_parameter("DLOE_SFM", "START_TIME", [float(grid[0])])
+    c3d.add_parameter("DLOE_SFM", "NOTE", note)
+    c3d.write(str(path))
+    return Path(path)
+
+
+def write_wide_csv(path: Path, capture: Capture, result: Result, time: np.ndarray,
+                   names: list[str]) -> Path:
+    """One row per image in estimated order: rank, image, event, stream, frame, time, then
+    ``<name>_x, _y, _z`` per column of X in model units (empty where not finite)."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["rank", "image", "event", "stream", "frame", "time",
+                         *(f"{name}_{axis}" for name in names for axis in "xyz")])
+        for r, i in enumerate(result.order):
+            writer.writerow([r, capture.image_names[i], int(result.events[i]),
+                             int(capture.stream[i]), int(capture.frame[i]), repr(float(time[i])),
+                             *("" if v != v else repr(v) for v in result.X[i].ravel().tolist())])
+    return Path(path)
+
+
+def write_mocap(folder: Path, capture: Capture, result: Result, names: list[str], *,
+                export_rate: float | None = None) -> tuple[np.ndarray, dict]:
+    """``trajectories.trc``, ``trajectories.c3d`` and ``trajectories_wide.csv`` in ``folder``.
+
+    ``capture`` as from ``export.solved_capture``, ``names`` (P',) the columns' marker names;
+    ``export_rate``: grid samples per reference frame (default: the fastest stream's rate).
+    Returns every image's time (N,) and the report's ``mocap_export`` entry.
+    """
+    if export_rate is not None and not (np.isfinite(export_rate) and export_rate > 0):
+        raise InputError(f"option --export-rate: must be a positive number, got {export_rate}")
+    timeline = image_times(capture, result)
+    rate = timeline.rate if export_rate is None else float(export_rate)
+    samples = int(np.ptp(timeline.time) * rate) + 1
+    if samples * result.X.shape[1] > MAX_POINT_SAMPLES:
+        raise InputError(f"option --export-rate: {rate:g} samples per frame over "
+                         f"{np.ptp(timeline.time):g} frames make {samples} samples of "
+                         f"{result.X.shape[1]} points, more than {MAX_POINT_SAMPLES}; lower it")
+    label = {summary["event"]: k for k, summary in enumerate(timeline.events)}
+    grid, Y = resample_uniform(timeline.time, result.X, capture.visible, rate,
+                               segments=np.array([label[int(e)] for e in result.events]),
+                               max_gap=np.array([s["max_gap"] for s in timeline.events]))
+    Y_mm = Y * MM_PER_UNIT
+    bases = sorted({s["base"] for s in timeline.events})
+    note = (f"time in frames of each event's reference stream (base: {', '.join(bases)}); "
+            f"mm from model units as metres; model frame as is (not y-up)")
+    write_trc(folder / "trajectories.trc", grid, Y_mm, names, rate)
+    write_c3d(folder / "trajectories.c3d", grid, Y_mm, names, rate, unit=timeline.unit,
+              note=note)
+    write_wide_csv(folder / "trajectories_wide.csv", capture, result, timeline.time, names)
+    report = {"time_unit": timeline.unit, "rate": rate, "samples": int(grid.size),
+              "start_time": float(grid[0]), "units": "mm", "mm_per_model_unit": MM_PER_UNIT,
+              "empty_fraction": float(np.isnan(Y[..., 0]).mean()), "note": note,
+              "events": timeline.events}
+    return timeline.time, report
