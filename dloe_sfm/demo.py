@@ -8,34 +8,13 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
-
-from .core.sequencing import kendall_tau
 from .errors import InputError
+from .evaluate import evaluate_output
 from .reconstruct import main as reconstruct_main
 
 logger = logging.getLogger("dloe_sfm")
 
 DEMO = Path(str(importlib.resources.files("dloe_sfm") / "assets" / "demo"))  # package data
-
-
-def score(out: Path, ground_truth: Path) -> dict[str, float]:
-    """Mean 3D error (mm) and |Kendall tau| of a reconstruct output folder against the truth."""
-    with np.load(out / "trajectories.npz") as res, np.load(ground_truth) as gt:
-        names = [str(n) for n in res["image_names"]]
-        row = {str(n): i for i, n in enumerate(gt["image_names"])}
-        missing = [n for n in names if n not in row]
-        if missing:
-            raise InputError(f"{ground_truth}: no ground truth for image(s) {missing[:5]}")
-        idx = np.array([row[n] for n in names])
-        X_true, t_true = gt["X_true"][idx], gt["t_true"][idx]
-        e = 1000 * np.linalg.norm(res["X"] - X_true, axis=2)
-        return {
-            "images": len(names),
-            "error_mm": float(e.mean()),
-            "error_median_mm": float(np.median(e)),
-            "kendall_tau": kendall_tau(res["order"], t_true),
-        }
 
 
 def main(
@@ -56,7 +35,7 @@ def main(
     reconstruct_main(
         workspace, workspace / "keypoints.csv", "csv", out, overwrite=overwrite, plots=plots
     )
-    scores = score(Path(out), workspace / "ground_truth.npz")
+    scores = evaluate_output(out, workspace / "ground_truth.npz")
     scores["seconds"] = time.perf_counter() - tic
     return scores
 

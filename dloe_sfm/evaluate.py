@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import csv
 import itertools
 import json
 import logging
@@ -16,7 +17,7 @@ from .core.options import Options
 from .core.sequencing import kendall_tau
 from .core.solver import initialise, oracle_reconstruct
 from .errors import InputError
-from .io import atomic_path, load_capture, load_result
+from .io import NpzReader, atomic_path, load_capture, load_result
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -176,15 +177,111 @@ def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]
     return out
 
 
+def similarity(X: np.ndarray, Y: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Scale s, rotation R (3, 3) and translation t (3,) with ``Y ~ s R X + t`` in least squares
+    (Umeyama 1991), X and Y (M, 3) corresponding points, M >= 3 not all on a line."""
+    mx, my = X.mean(axis=0), Y.mean(axis=0)
+    U, S, Vt = np.linalg.svd((Y - my).T @ (X - mx) / len(X))
+    d = np.ones(3)
+    d[2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = U @ np.diag(d) @ Vt
+    var = ((X - mx) ** 2).sum() / len(X)
+    s = float((S * d).sum() / var) if var > 0 else 1.0
+    return s, R, my - s * R @ mx
+
+
+def _sequence_times(path: Path) -> dict[str, float]:
+    """Image -> estimated time from a ``sequence.csv`` with a ``time`` column ({} without)."""
+    if not path.is_file():
+        return {}
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        return {row["image"]: float(row["time"]) for row in rows
+                if row.get("time") not in (None, "")}
+    except (OSError, UnicodeDecodeError, KeyError, ValueError, csv.Error) as e:
+        raise InputError(f"{path}: cannot read the image times ({e})") from None
+
+
+def _sync_rms(t_est: np.ndarray, t_true: np.ndarray, events: np.ndarray) -> float:
+    """RMS, in the truth's unit, of the true times left after an affine map from the estimated
+    ones (their unit and origin are the reference stream's) fitted per event."""
+    residuals = []
+    for e in np.unique(events):
+        sel = (events == e) & np.isfinite(t_est) & np.isfinite(t_true)
+        if sel.sum() < 3:
+            continue
+        A = np.stack([t_est[sel], np.ones(sel.sum())], axis=1)
+        coef = np.linalg.lstsq(A, t_true[sel], rcond=None)[0]
+        residuals.append(t_true[sel] - A @ coef)
+    return float(np.sqrt(np.mean(np.concatenate(residuals) ** 2))) if residuals else float("nan")
+
+
+def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
+    """Score a ``reconstruct`` output folder against a truth file (``image_names`` (N,), ``X_true``
+    (N, P, 3) in metres, optionally ``t_true`` (N,) seconds; the demo's ``ground_truth.npz``).
+
+    Mean / median 3D error in mm as written and after the similarity that best aligns the result
+    to the truth (for a model in another frame or scale), |Kendall tau| of the order and the RMS
+    sync error (ms, after an affine map per event of ``sequence.csv``'s times) when the truth has
+    times.
+    """
+    folder, truth = Path(folder), Path(truth)
+    if not (folder / "trajectories.npz").is_file():
+        raise InputError(f"{folder}: not a reconstruct output folder (no trajectories.npz)")
+    with NpzReader(folder / "trajectories.npz") as f:
+        for key in ("X", "order", "image_names", "events"):
+            if key not in f.files:
+                raise InputError(f"{f.path}: missing key '{key}'")
+        X, order = f.read("X"), f.read("order", "iu")
+        names, events = [str(n) for n in f.read("image_names", "U")], f.read("events", "iu")
+    with NpzReader(truth) as g:
+        for key in ("image_names", "X_true"):
+            if key not in g.files:
+                raise InputError(f"{truth}: missing key '{key}'")
+        row = {str(n): i for i, n in enumerate(g.read("image_names", "U"))}
+        X_true = g.read("X_true")
+        t_true = g.read("t_true") if "t_true" in g.files else None
+    missing = [n for n in names if n not in row]
+    if missing:
+        raise InputError(f"{truth}: no ground truth for image(s) {missing[:5]}")
+    idx = np.array([row[n] for n in names], dtype=np.int64)
+    X_true = X_true[idx]
+    if X_true.shape != X.shape:
+        raise InputError(f"{truth}: 'X_true' has {X_true.shape[1:]} points per image, "
+                         f"the result {X.shape[1:]}")
+    ok = np.isfinite(X).all(axis=2) & np.isfinite(X_true).all(axis=2)
+    if ok.sum() < 3:
+        raise InputError(f"{folder}: fewer than 3 points with both a result and a truth")
+    e = 1000 * np.linalg.norm(X - X_true, axis=2)[ok]
+    s, R, t = similarity(X[ok], X_true[ok])
+    e_aligned = 1000 * np.linalg.norm(s * X[ok] @ R.T + t - X_true[ok], axis=1)
+    scores = {"images": len(names), "error_mm": float(e.mean()),
+              "error_median_mm": float(np.median(e)), "error_aligned_mm": float(e_aligned.mean()),
+              "alignment_scale": s}
+    if t_true is not None:
+        t_true = t_true[idx].astype(np.float64)
+        scores["kendall_tau"] = kendall_tau(order, t_true)
+        times = _sequence_times(folder / "sequence.csv")
+        if times:
+            t_est = np.array([times.get(n, np.nan) for n in names])
+            scores["sync_rms_ms"] = 1000 * _sync_rms(t_est, t_true, events)
+    return scores
+
+
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
-    """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth)."""
+    """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth), or
+    a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`)."""
     for p in (result, capture):
         if out is not None and os.path.exists(out) and os.path.exists(p) and \
                 os.path.samefile(out, p):
             raise InputError(f"{out}: the output is the input file {p}; choose another path")
-    cap = load_capture(capture)
-    res = load_result(result)
-    scores = evaluate(cap, res["X"], res["order"], references=references, result=res)
+    if Path(result).is_dir():
+        scores = evaluate_output(result, capture)
+    else:
+        cap = load_capture(capture)
+        res = load_result(result)
+        scores = evaluate(cap, res["X"], res["order"], references=references, result=res)
     if out is not None:
         with atomic_path(out) as tmp:
             tmp.write_text(json.dumps(scores, indent=2))
@@ -192,8 +289,11 @@ def main(result: Path, capture: Path, *, references: bool = True, out: Path | No
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("result", type=Path, help="result.npz")
-    parser.add_argument("capture", type=Path, help="capture.npz with X_true and t_true")
+    parser.add_argument("result", type=Path,
+                        help="result.npz, or a reconstruct output folder")
+    parser.add_argument("capture", type=Path,
+                        help="capture.npz with X_true and t_true; for a folder, a truth .npz "
+                             "with image_names, X_true (metres) and optionally t_true (s)")
     parser.add_argument(
         "--no-references",
         dest="references",

@@ -1,4 +1,5 @@
-"""Workspace outputs (INTERFACES.md section 4): point clouds, skeletons, trajectories, report.
+"""Workspace outputs (docs/interfaces.md, "Reconstruct outputs"): point clouds, skeletons,
+trajectories, report.
 
 Everything is written into a temporary sibling of the output folder and renamed when complete, so a
 failed export never leaves a half-written folder behind. open3d is used here and nowhere else.
@@ -391,7 +392,8 @@ def export_outputs(out_dir: Path | str, capture: Capture, result: Result, *,
                    static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
                    layout: Layout | None = None, report: dict | None = None,
                    overwrite: bool = False) -> Path:
-    """Write INTERFACES.md section 4 to ``out_dir`` atomically; returns ``out_dir``.
+    """Write the outputs of docs/interfaces.md ("Reconstruct outputs") to ``out_dir``
+    atomically; returns ``out_dir``.
 
     An existing ``out_dir`` is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it
     (``io.check_output``), in which case it is replaced only once the new folder is complete.

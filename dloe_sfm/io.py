@@ -1,4 +1,4 @@
-"""Capture and result files (INTERFACES.md sections 1 and 2), written atomically."""
+"""Capture and result files (docs/interfaces.md), written atomically; output safety."""
 
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def _nearest_existing(path: Path) -> Path:
 
 
 def _is_result_file(path: Path) -> bool:
-    """Whether ``path`` is a ``result.npz`` (INTERFACES.md section 2), judged by its key names."""
+    """Whether ``path`` is a ``result.npz`` (docs/interfaces.md), judged by its key names."""
     try:
         with zipfile.ZipFile(path) as z:
             names = set(z.namelist())
@@ -422,7 +422,7 @@ def save_capture(path: Path | str, capture: Capture, **extra: np.ndarray) -> Pat
 
 
 def result_arrays(result: Result) -> dict[str, np.ndarray]:
-    """The arrays of INTERFACES.md section 2 (plus W, D, embedding for convenience)."""
+    """The arrays of a result file (docs/interfaces.md; plus W, D, embedding for convenience)."""
     A = sp.csr_matrix(result.A)
     W = sp.csr_matrix(result.W)
     return {

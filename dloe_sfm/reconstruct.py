@@ -158,7 +158,7 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
          config: Path | None = None, overrides: list[str] | None = None,
          options: Options | None = None, overwrite: bool = False, plots: bool = True,
          export_rate: float | None = None) -> Path:
-    """Workspace + keypoints -> capture -> DLOE -> ``out`` (INTERFACES.md section 4).
+    """Workspace + keypoints -> capture -> DLOE -> ``out`` (docs/interfaces.md, outputs).
 
     ``keypoints`` may be None for ``aruco`` (markers detected in the workspace's images).
     ``layout`` (names, skeleton, left/right pairs of the points; ``keypoints.load_layout``: a

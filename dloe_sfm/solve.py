@@ -56,7 +56,7 @@ def main(
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", type=Path, help="capture.npz (INTERFACES.md section 1)")
+    parser.add_argument("capture", type=Path, help="capture.npz (docs/interfaces.md)")
     parser.add_argument("--out", type=Path, required=True, help="result.npz to write")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing result file (any other file is refused)")

@@ -46,7 +46,8 @@ class Sequence:
 
 
 def load_sequence(out: Path) -> Sequence:
-    """Read ``out/trajectories.npz`` and ``out/static.ply`` (INTERFACES.md section 4)."""
+    """Read ``out/trajectories.npz`` and ``out/static.ply`` (docs/interfaces.md, "Reconstruct
+    outputs")."""
     import open3d as o3d
 
     from .export import point_colors

@@ -1,4 +1,5 @@
-"""Workspace outputs (INTERFACES.md section 4) from a hand-built capture and result."""
+"""Workspace outputs (docs/interfaces.md, "Reconstruct outputs") from a hand-built capture and
+result."""
 
 from __future__ import annotations
 

@@ -480,11 +480,13 @@ def test_simulate_settings_and_outputs(assets_dir, tmp_path, solved) -> None:
     from dloe_sfm.simulate import main as simulate_main
 
     mocap = assets_dir / "mocap" / "walking_1.npz"
-    for bad, message in ((SimulationSettings(rate=0.0), r"'rate' .* in \(0, inf\)"),
-                         (SimulationSettings(drop=1.0), r"'drop' .* in \[0, 1\)"),
-                         (SimulationSettings(focal=float("nan")), "'focal'")):
+    for bad, message in (({"rate": 0.0}, r"--rate must be in \(0, 1000\]"),
+                         ({"drop": 1.0}, r"--drop must be in \[0, 1\)"),
+                         ({"focal": float("nan")}, "--focal")):
         with pytest.raises(InputError, match=message):
-            simulate_main(mocap, tmp_path / "c.npz", bad)
+            SimulationSettings(**bad)
+    with pytest.raises(InputError, match=r"--outliers must be in \[0, 1\]"):
+        simulate_main(mocap, tmp_path / "c.npz", outliers=1.5)
     copy = tmp_path / "m.npz"
     shutil.copy(mocap, copy)
     with pytest.raises(InputError, match="the output is the input mocap file"):

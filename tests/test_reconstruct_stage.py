@@ -105,6 +105,43 @@ def test_points_match_the_truth(scene, reconstructed) -> None:
     assert by_time[[0, -1]].mean(axis=1).max() < 0.2
 
 
+def test_evaluate_scores_an_output_folder(scene, reconstructed, tmp_path, capsys) -> None:
+    from dloe_sfm.evaluate import evaluate_output
+
+    _, _, truth = scene
+    names = sorted(truth)
+    X_true = np.stack([truth[n] for n in names])
+    t_true = np.array([image_time(n) for n in names])
+    np.savez(tmp_path / "truth.npz", image_names=names, X_true=X_true, t_true=t_true)
+    scores = evaluate_output(reconstructed, tmp_path / "truth.npz")
+    with np.load(reconstructed / "trajectories.npz") as data:
+        X = data["X"]
+        row = {n: i for i, n in enumerate(names)}
+        expected = np.linalg.norm(X - X_true[[row[str(n)] for n in data["image_names"]]], axis=2)
+    assert scores["images"] == len(names)
+    assert scores["error_mm"] == pytest.approx(1000 * expected.mean(), rel=1e-9)
+    # already in the truth's frame: the alignment (least squares, not least mean) barely moves it
+    assert scores["alignment_scale"] == pytest.approx(1, abs=1e-2)
+    assert scores["error_aligned_mm"] < 2 * scores["error_mm"] and scores["kendall_tau"] > 0.99
+    assert 0 <= scores["sync_rms_ms"] < 1000 * 0.25 / len(names)  # a quarter of an image slot
+    # the same truth in another frame and scale: the aligned error scales with it, no more
+    c, s = np.cos(0.7), np.sin(0.7)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    np.savez(tmp_path / "moved.npz", image_names=names, X_true=2 * X_true @ R.T + [1, 2, 3],
+             t_true=t_true)
+    moved = evaluate_output(reconstructed, tmp_path / "moved.npz")
+    assert moved["error_aligned_mm"] == pytest.approx(2 * scores["error_aligned_mm"], rel=1e-6)
+    assert moved["alignment_scale"] == pytest.approx(2 * scores["alignment_scale"], rel=1e-6)
+    assert moved["error_mm"] > 100 * scores["error_mm"]
+    # through the command line; a folder that is not an output: one line, exit 2
+    assert cli.main(["evaluate", str(reconstructed), str(tmp_path / "truth.npz")]) == 0
+    assert "error_aligned_mm" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["evaluate", str(tmp_path), str(tmp_path / "truth.npz")])
+    assert exit_info.value.code == 2
+    assert "not a reconstruct output folder" in one_error_line(capsys.readouterr().err)
+
+
 def test_outputs_are_complete(scene, reconstructed) -> None:
     _, _, truth = scene
     frames = sorted((reconstructed / "frames").glob("*.ply"))

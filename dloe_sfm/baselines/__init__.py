@@ -1,4 +1,4 @@
-"""Baselines the paper compares DLOE with (METHOD.md "Baselines named by the paper").
+"""Baselines the paper compares DLOE with (docs/method.md, "Baselines").
 
 Every function takes a :class:`~dloe_sfm.core.capture.Capture` (plus the ground-truth times or
 instants a baseline needs) and returns the (N, P, 3) shapes in world units. Like the core, this

@@ -53,8 +53,8 @@ class Capture:
     no particular order (NaN = absent), ``confidence`` (N, M, P); :func:`dloe_sfm.reconstruct`
     then associates the detections into subjects (``core.multitarget``).
 
-    Projection: ``x ~ K R (X - C)``, pixel (0, 0) = centre of the top-left pixel's corner
-    convention of the capture file (INTERFACES.md section 1).
+    Projection: ``x ~ K R (X - C)`` with no half-pixel offset: pixels mean what ``K`` makes
+    them (docs/interfaces.md, capture file).
 
     Attributes
     ----------

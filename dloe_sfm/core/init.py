@@ -1,4 +1,4 @@
-"""Initialisation by two-view pseudo-triangulation (METHOD.md, "Initialisation")."""
+"""Initialisation by two-view pseudo-triangulation (docs/method.md, "The steps as implemented")."""
 
 from __future__ import annotations
 

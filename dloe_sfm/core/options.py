@@ -234,7 +234,7 @@ class Options:
     """D-step: ``D = c diag(q) + (1 - c) I`` with ``sum q = N``, i.e. ``D_ii >= 1 - c``.
     In [0, 1]."""
     fixed_degree: bool = True
-    """Keep D = I (skip the D-step): measured more accurate than the D-step (see the README)."""
+    """Keep D = I (skip the D-step): measured more accurate than the D-step (docs/method.md)."""
     end_degree: float = 0.1
     """D_ii of the images at the two ends of the estimated time line (no neighbour on one side);
     in [0, 1]."""
@@ -286,7 +286,7 @@ class Options:
     """Loss on every observation's residual r: its pixel distance from what the solved graph
     predicts there (``W X``) without it. Observations are reweighted and the capture re-solved."""
     robust_scale_px: float | None = None
-    """Scale c of the robust loss, pixels; None: from the residuals, 4 sigma (sigma: their median
+    """Scale c of the robust loss, pixels; None: from the residuals, 5 sigma (sigma: their median
     / 1.18, a 2D Gaussian's) but at least 3 px. Observations weighted below 1/2 (r > c for
     Cauchy) are reported, and dropped with hard rays; a round that would drop more than half
     of the observations is not run. None or > 0, finite."""

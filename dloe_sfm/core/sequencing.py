@@ -1,4 +1,5 @@
-"""Sequencing: distances between images, line embeddings, orders (METHOD.md "Sequencing").
+"""Sequencing: distances between images, line embeddings, orders (docs/method.md, "The steps as
+implemented").
 
 Shapes: N images, P points, X (N, P, 3); streams / frames (N,) int.
 """

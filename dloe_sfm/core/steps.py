@@ -1,4 +1,5 @@
-"""The three convex steps of alternating convex search (METHOD.md "Cost") and the cost itself.
+"""The three convex steps of alternating convex search and the cost itself (docs/method.md,
+"The paper's model").
 
 Shapes: N images, P points; X (N, P, 3); rays (N, P, 3) unit with NaN = unobserved; C (N, 3).
 All graph matrices are scipy CSR (N, N). Cost terms are divided by N * P (authors' convention):

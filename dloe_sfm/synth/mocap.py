@@ -1,4 +1,5 @@
-"""The paper's motion-capture protocol (METHOD.md): a ring of unsynchronised cameras.
+"""The paper's motion-capture protocol (docs/method.md, "Evaluation protocol"): a ring of
+unsynchronised cameras.
 
 Four static 1000 x 1000 px cameras (f = 1000, principal point (500, 500)) on a ring around the
 motion centre (yaw +-45 deg, +-135 deg, looking inward). Each stream samples the motion at the same

@@ -7,9 +7,9 @@ Any folder of images (loose photos, or one sub-folder per video) with one keypoi
         --keypoints path/to/openpose_json --format openpose --out outputs/crowd
 
 writes ``OUT/workspace`` (the COLMAP workspace: database.db, sparse/<k>, images -> a link to
-the pictures) and ``OUT/reconstruction`` (INTERFACES.md section 4, plots included). The SfM
-step is skipped when ``OUT/workspace`` already holds a model (``--redo-sfm`` recomputes it);
-an existing reconstruction is only replaced with ``--overwrite``.
+the pictures) and ``OUT/reconstruction`` (docs/interfaces.md, "Reconstruct outputs", plots
+included). The SfM step is skipped when ``OUT/workspace`` already holds a model
+(``--redo-sfm`` recomputes it); an existing reconstruction is only replaced with ``--overwrite``.
 """
 
 from __future__ import annotations
