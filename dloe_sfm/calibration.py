@@ -398,8 +398,12 @@ def _guess_format(path: Path) -> str:
     if name.endswith((".qca.txt", ".qca")):
         return "qualisys"
     if name.endswith(".xml"):
-        with open(path, "rb") as f:
-            return "opencv" if b"<opencv_storage" in f.read(4096) else "qualisys"
+        try:
+            with open(path, "rb") as f:
+                head = f.read(4096)
+        except OSError as e:
+            raise InputError(f"{path}: cannot read ({e.strerror or e})") from None
+        return "opencv" if b"<opencv_storage" in head else "qualisys"
     raise InputError(f"{path}: unknown calibration format (expected .qca.txt, .toml, .yml, "
                      ".yaml, .xml or .json, or --format)")
 

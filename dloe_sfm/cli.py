@@ -118,8 +118,8 @@ def _terminate(signum, frame) -> None:
 
 def _execute(parser: argparse.ArgumentParser, run, args: argparse.Namespace) -> int:
     setup_logging(verbose=args.verbose, quiet=args.quiet)
-    if getattr(args, "progress", False) or sys.stderr.isatty():
-        progress.enable()
+    bars = progress.enabled()
+    progress.enable(bars or getattr(args, "progress", False) or sys.stderr.isatty())
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
     try:
@@ -131,6 +131,7 @@ def _execute(parser: argparse.ArgumentParser, run, args: argparse.Namespace) -> 
     except KeyboardInterrupt:
         parser.exit(130, "interrupted\n")
     finally:
+        progress.enable(bars)  # a program that called the CLI in-process keeps its own setting
         if in_main_thread:
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 

@@ -6,6 +6,7 @@ adapters use (0, 0) and add 0.5 before calling anything in this module.
 
 from __future__ import annotations
 
+import functools
 import logging
 import re
 import struct
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from .core.capture import ROTATION_TOLERANCE, nearest_rotation, rotation_deviation
 from .errors import InputError
 from .io import atomic_path
 
@@ -46,11 +48,6 @@ def has_model(folder: Path) -> bool:
     return any(
         all((folder / f"{n}{ext}").is_file() for n in MODEL_FILES) for ext in (".bin", ".txt")
     )
-
-
-ROTATION_TOLERANCE = 1e-3
-"""Largest deviation of a pose's rotation from orthonormal that is accepted (and projected to
-SO(3)); COLMAP normalises quaternions only in models with frames."""
 
 
 class _BinaryFile:
@@ -98,7 +95,9 @@ class _BinaryFile:
             raise self._corrupt(f"{len(self.data) - self.pos} unexpected bytes")
 
 
+@functools.cache
 def _camera_num_params() -> dict[int, int]:
+    """Number of parameters of every COLMAP camera model, by model id."""
     return {
         int(v): pycolmap.Camera.create_from_model_name(0, name, 1.0, 1, 1).params.size
         for name, v in pycolmap.CameraModelId.__members__.items() if name != "INVALID"
@@ -151,11 +150,11 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
         if all((model_dir / f"{n}.bin").is_file() for n in MODEL_FILES):
             _check_binary_model(model_dir)
         return pycolmap.Reconstruction(str(model_dir))
+    except InputError:  # a ValueError: _check_binary_model's message stands
+        raise
     except OSError as e:
         raise InputError(f"{model_dir}: cannot read the COLMAP model ({e.strerror or e})") from None
     except (ValueError, RuntimeError, IndexError, KeyError, OverflowError, MemoryError) as e:
-        if isinstance(e, InputError):
-            raise
         lines = str(e).strip().splitlines()
         detail = " ".join(lines[-1].split())[:200] if lines else type(e).__name__
         raise InputError(f"{model_dir}: cannot read the COLMAP model ({detail})") from None
@@ -178,7 +177,8 @@ def _checked_poses(
     rec: pycolmap.Reconstruction, names: Sequence[str], model_dir: Path
 ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """(R, t) world-to-camera of every registered image, R projected to SO(3) (SVD) when within
-    ``ROTATION_TOLERANCE`` of it, else an InputError naming the image."""
+    ``ROTATION_TOLERANCE`` of it, else an InputError naming the image (COLMAP normalises
+    quaternions only in models with frames)."""
     images = {im.name: im for im in rec.images.values() if im.has_pose}
     poses, worst, worst_name = {}, 0.0, ""
     for name in names:
@@ -186,19 +186,18 @@ def _checked_poses(
         R = np.array(pose.rotation.matrix(), dtype=np.float64)
         t = np.array(pose.translation, dtype=np.float64)
         if not (np.isfinite(R).all() and np.isfinite(t).all()):
-            raise InputError(f"{model_dir}: image '{name}' has a pose that is not finite")
-        deviation = max(np.abs(R @ R.T - np.eye(3)).max(), abs(np.linalg.det(R) - 1))
+            raise InputError(f"{model_dir}: image {name!r} has a pose that is not finite")
+        deviation = float(rotation_deviation(R))
         if deviation > ROTATION_TOLERANCE:
             raise InputError(
-                f"{model_dir}: image '{name}' has a rotation {deviation:.2g} from orthonormal "
+                f"{model_dir}: image {name!r} has a rotation {deviation:.2g} from orthonormal "
                 f"(tolerance {ROTATION_TOLERANCE:g}; a quaternion that is not unit?)"
             )
         if deviation > worst:
             worst, worst_name = deviation, name
-        u, _, vt = np.linalg.svd(R)
-        poses[name] = (u @ vt, t)
+        poses[name] = (nearest_rotation(R), t)
     if worst > 1e-12:
-        logger.info("%s: rotations projected to SO(3), largest deviation %.2g (image '%s')",
+        logger.info("%s: rotations projected to SO(3), largest deviation %.2g (image %r)",
                     model_dir, worst, worst_name)
     return poses
 

@@ -7,7 +7,6 @@ import csv
 import itertools
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +16,7 @@ from .core.options import Options
 from .core.sequencing import kendall_tau
 from .core.solver import initialise, oracle_reconstruct
 from .errors import InputError
-from .io import NpzReader, atomic_path, load_capture, load_result
+from .io import NpzReader, atomic_path, check_not_input, load_capture, load_result
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -239,13 +238,23 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
         for key in ("image_names", "X_true"):
             if key not in g.files:
                 raise InputError(f"{truth}: missing key '{key}'")
-        row = {str(n): i for i, n in enumerate(g.read("image_names", "U"))}
+        truth_names = g.read("image_names", "U")
         X_true = g.read("X_true")
         t_true = g.read("t_true") if "t_true" in g.files else None
-    missing = [n for n in names if n not in row]
+    n = len(names)
+    if X.ndim != 3 or X.shape[::2] != (n, 3) or order.shape != (n,) or events.shape != (n,):
+        raise InputError(f"{folder / 'trajectories.npz'}: keys 'X' (N, P, 3), 'order' and "
+                         f"'events' (N,) do not match its {n} image names")
+    m = len(truth_names)
+    if X_true.ndim != 3 or X_true.shape[::2] != (m, 3) or (
+            t_true is not None and t_true.shape != (m,)):
+        raise InputError(f"{truth}: keys 'X_true' (N, P, 3) and 't_true' (N,) do not match its "
+                         f"{m} image names")
+    row = {str(name): i for i, name in enumerate(truth_names)}
+    missing = [name for name in names if name not in row]
     if missing:
         raise InputError(f"{truth}: no ground truth for image(s) {missing[:5]}")
-    idx = np.array([row[n] for n in names], dtype=np.int64)
+    idx = np.array([row[name] for name in names], dtype=np.int64)
     X_true = X_true[idx]
     if X_true.shape != X.shape:
         raise InputError(f"{truth}: 'X_true' has {X_true.shape[1:]} points per image, "
@@ -264,7 +273,7 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
         scores["kendall_tau"] = kendall_tau(order, t_true)
         times = _sequence_times(folder / "sequence.csv")
         if times:
-            t_est = np.array([times.get(n, np.nan) for n in names])
+            t_est = np.array([times.get(name, np.nan) for name in names])
             scores["sync_rms_ms"] = 1000 * _sync_rms(t_est, t_true, events)
     return scores
 
@@ -272,10 +281,8 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
     """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth), or
     a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`)."""
-    for p in (result, capture):
-        if out is not None and os.path.exists(out) and os.path.exists(p) and \
-                os.path.samefile(out, p):
-            raise InputError(f"{out}: the output is the input file {p}; choose another path")
+    if out is not None:
+        check_not_input(out, (result, capture))
     if Path(result).is_dir():
         scores = evaluate_output(result, capture)
     else:

@@ -111,6 +111,15 @@ def check_output(out: Path | str, *, protected: Sequence[Path | str | None] = ()
     return target
 
 
+def check_not_input(out: Path | str, inputs: Sequence[Path | str], what: str = "input file"
+                    ) -> None:
+    """Refuse an output file ``out`` that is one of ``inputs`` (the same file, whatever the
+    path), for the writers that need no more of :func:`check_output`."""
+    for p in inputs:
+        if os.path.exists(out) and os.path.exists(p) and os.path.samefile(out, p):
+            raise InputError(f"{out}: the output is the {what} {p}; choose another output path")
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -327,10 +336,6 @@ class NpzReader:
         return array
 
 
-def _open_npz(path: Path) -> NpzReader:
-    return NpzReader(path)
-
-
 def _sizes(npz: NpzReader, keys: Sequence[str]) -> int:
     return sum(math.prod(s) * d.itemsize for s, d in (npz._headers[k] for k in keys))
 
@@ -343,14 +348,12 @@ def _check_bound(npz: NpzReader, key: str, limit: int, what: str) -> None:
         )
 
 
-def load_capture(
-    path: Path | str, *, validate: bool = True, extras: Sequence[str] = CAPTURE_EXTRAS
-) -> Capture:
-    """Read a ``capture.npz``. The keys ``extras`` (ground truth) go to ``Capture.extras``;
-    other keys are not read. Every array's header is checked against the others' before any
-    data is decompressed."""
+def load_capture(path: Path | str, *, validate: bool = True) -> Capture:
+    """Read a ``capture.npz``. The keys ``CAPTURE_EXTRAS`` (ground truth) go to
+    ``Capture.extras``; other keys are not read. Every array's header is checked against the
+    others' before any data is decompressed."""
     path = Path(path)
-    with _open_npz(path) as npz:
+    with NpzReader(path) as npz:
         missing = [k for k in REQUIRED_KEYS if k not in npz.files]
         if missing:
             raise InputError(f"{path}: missing key(s) {', '.join(repr(k) for k in missing)}")
@@ -371,7 +374,7 @@ def load_capture(
         x_size = math.prod(x_shape)
         if "symmetric_pairs" in keys:
             _check_bound(npz, "symmetric_pairs", x_shape[-2] ** 2 + SMALL_ARRAY, "field 'x'")
-        extra = [k for k in extras if k in npz.files]
+        extra = [k for k in CAPTURE_EXTRAS if k in npz.files]
         for k in extra:
             npz.header(k)
             _check_bound(npz, k, 2 * x_size + SMALL_ARRAY, f"field 'x' {x_shape}")
@@ -384,12 +387,11 @@ def load_capture(
     return capture.validate(str(path)) if validate else capture
 
 
-
 def read_mocap(path: Path | str) -> tuple[np.ndarray, float, np.ndarray | None]:
     """``positions`` (T, J, 3) float64, ``fps`` and ``parents`` (J,) int64 (None when absent) of
     a mocap ``.npz``, checked (T >= 2 finite frames, fps > 0, parents in -1..J-1)."""
     path = Path(path)
-    with _open_npz(path) as npz:
+    with NpzReader(path) as npz:
         for key in ("positions", "fps"):
             if key not in npz.files:
                 raise InputError(f"{path}: missing key '{key}'")
@@ -457,7 +459,7 @@ def load_result(path: Path | str) -> dict[str, np.ndarray]:
     """Read a ``result.npz`` (the keys of ``RESULT_KEYS``) into a dict; ``A`` (and ``W`` when
     present) as CSR matrices. Headers are checked against ``X`` before any data is read."""
     path = Path(path)
-    with _open_npz(path) as npz:
+    with NpzReader(path) as npz:
         missing = [
             k for k in ("X", "order", "A_data", "A_indices", "A_indptr") if k not in npz.files
         ]

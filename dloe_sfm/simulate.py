@@ -11,12 +11,11 @@ from __future__ import annotations
 import argparse
 import logging
 import math
-import os
 from dataclasses import fields
 from pathlib import Path
 
 from .errors import InputError
-from .io import save_capture
+from .io import check_not_input, save_capture
 from .synth import SimulationSettings, load_mocap, simulate
 from .synth.scenarios import (
     add_outliers,
@@ -59,10 +58,7 @@ def main(
     for name, value, high in (("gap", gap, math.inf), ("spacing", spacing, math.inf),
                               ("outliers", outliers, 1.0), ("swaps", swaps, 1.0)):
         _check_fraction_or_distance(name, value, high)
-    for p in paths:
-        if os.path.exists(out) and os.path.exists(p) and os.path.samefile(out, p):
-            raise InputError(f"{out}: the output is the input mocap file {p}; choose another "
-                             "output path")
+    check_not_input(out, paths, "input mocap file")
     seqs = [load_mocap(p) for p in paths]
     if len(seqs) == 1:
         capture = simulate(seqs[0], settings)

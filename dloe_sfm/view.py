@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .io import atomic_path, check_output
+from .io import NpzReader, atomic_path, check_output
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -59,14 +59,13 @@ def load_sequence(out: Path) -> Sequence:
     if not path.is_file():
         raise InputError(f"{out}: no trajectories.npz in it: not a `dloe-sfm reconstruct` "
                          "output folder")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (OSError, ValueError) as e:
-        raise InputError(f"{path}: not a readable .npz file ({e})") from None
-    missing = [k for k in ("X", "order", "image_names", "events") if k not in arrays]
-    if missing:
-        raise InputError(f"{path}: missing {', '.join(missing)}")
+    with NpzReader(path) as npz:
+        missing = [k for k in ("X", "order", "image_names", "events") if k not in npz.files]
+        if missing:
+            raise InputError(f"{path}: missing {', '.join(missing)}")
+        arrays = {k: npz.read(k, "U") if k == "image_names" else npz.read(k)
+                  for k in ("X", "order", "image_names", "events", "edges", "point_id",
+                            "observed", "subject_id") if k in npz.files}
     X = np.asarray(arrays["X"], dtype=np.float64)
     if X.ndim != 3 or X.shape[2] != 3 or X.shape[0] == 0:
         raise InputError(f"{path}: X has shape {X.shape}, expected (N, P, 3) with N > 0")

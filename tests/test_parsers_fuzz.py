@@ -221,15 +221,19 @@ def write_json(folder: Path, name: str, doc, how: str) -> None:
 
 # --- property tests --------------------------------------------------------------------------
 
+@pytest.mark.parametrize(("fmt", "counts", "suffix", "doc"), [
+    ("openpose", [1, 3, 25], "_keypoints.json", openpose_doc),
+    ("mmpose", [1, 3, 17], ".json", mmpose_doc),
+])
 @FUZZ
 @given(data=st.data(), fuzz=st.builds(Fuzz, st.booleans()))
-def test_openpose_fuzz(ws, scratch, data, fuzz) -> None:
-    p = data.draw(st.sampled_from([1, 3, 25]), label="points")
+def test_per_image_json_fuzz(ws, scratch, fmt, counts, suffix, doc, data, fuzz) -> None:
+    """One JSON file per image (OpenPose, MMPose)."""
+    p = data.draw(st.sampled_from(counts), label="points")
     folder = fresh(scratch)
     for name in data.draw(file_names(ws, fuzz), label="files"):
-        write_json(folder, f"{name}_keypoints.json", data.draw(openpose_doc(fuzz, p)),
-                   data.draw(fuzz.damage()))
-    through("openpose", folder, ws, data.draw(PERSON))
+        write_json(folder, f"{name}{suffix}", data.draw(doc(fuzz, p)), data.draw(fuzz.damage()))
+    through(fmt, folder, ws, data.draw(PERSON))
 
 
 @FUZZ
@@ -242,17 +246,6 @@ def test_coco_fuzz(ws, scratch, data, fuzz) -> None:
                data.draw(fuzz.damage()))
     kp = through("coco", folder / "coco.json", ws, data.draw(PERSON))
     assert fuzz.hostile or kp is not None
-
-
-@FUZZ
-@given(data=st.data(), fuzz=st.builds(Fuzz, st.booleans()))
-def test_mmpose_fuzz(ws, scratch, data, fuzz) -> None:
-    p = data.draw(st.sampled_from([1, 3, 17]), label="points")
-    folder = fresh(scratch)
-    for name in data.draw(file_names(ws, fuzz), label="files"):
-        write_json(folder, f"{name}.json", data.draw(mmpose_doc(fuzz, p)),
-                   data.draw(fuzz.damage()))
-    through("mmpose", folder, ws, data.draw(PERSON))
 
 
 @FUZZ

@@ -33,6 +33,19 @@ def field_shapes(x_shape: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
             "image_names": (n,), "confidence": tuple(x_shape[:-1])}
 
 
+def rotation_deviation(R: np.ndarray) -> np.ndarray:
+    """(...) deviation of (..., 3, 3) ``R`` from a rotation: ``max(|R R^T - I|, |det R - 1|)``."""
+    ortho = np.abs(np.einsum("...ij,...kj->...ik", R, R) - np.eye(3)).max(axis=(-2, -1))
+    return np.maximum(ortho, np.abs(np.linalg.det(R) - 1))
+
+
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """The rotation(s) nearest (..., 3, 3) ``R`` (by SVD); for R within ``ROTATION_TOLERANCE``
+    of one."""
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt
+
+
 def _integers(values: np.ndarray) -> np.ndarray:
     """``values`` as int64 when they are all integers within ``INDEX_LIMIT``; otherwise float64,
     left for :meth:`Capture.validate` to report."""
@@ -217,9 +230,7 @@ class Capture:
 
     def _with_rotations(self, source: str) -> Capture:
         """Self with R projected to SO(3) (nearest rotation, by SVD) when it deviates."""
-        R = self.R
-        ortho = np.abs(np.einsum("nij,nkj->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-        deviation = np.maximum(ortho, np.abs(np.linalg.det(R) - 1))
+        deviation = rotation_deviation(self.R)
         worst = int(np.argmax(deviation))
         if deviation[worst] > ROTATION_TOLERANCE:
             raise InputError(
@@ -228,12 +239,11 @@ class Capture:
             )
         if deviation[worst] <= 1e-12:
             return self
-        u, _, vt = np.linalg.svd(R)
         logger.info(
             "%s: rotations projected to SO(3), largest deviation %.2g (image %s)",
             source, deviation[worst], self._name(worst),
         )
-        return replace(self, R=u @ vt)
+        return replace(self, R=nearest_rotation(self.R))
 
     def memory_estimate(self, options: Options) -> int:
         """Bytes the solve of this capture needs at its peak, roughly (:func:`memory_estimate`)."""
@@ -243,7 +253,7 @@ class Capture:
         )
 
     def _name(self, i: int) -> str:
-        return f"{int(i)} ('{self.image_names[int(i)]}')"
+        return f"{int(i)} ({str(self.image_names[int(i)])!r})"
 
     @property
     def visible(self) -> np.ndarray:

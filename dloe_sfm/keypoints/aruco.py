@@ -21,7 +21,7 @@ from PIL import Image
 from .. import progress
 from ..colmap import list_images
 from ..errors import InputError
-from .base import MAX_POINTS, Keypoints, Layout, quoted, shown
+from .base import MAX_POINTS, Keypoints, Layout, check_count, quoted, shown
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -88,8 +88,8 @@ def read(path: Path, *, dictionary: str = "DICT_4X4_50", num_markers: int | None
     every image below a folder."""
     dictionary = dictionary_name(dictionary)
     detector = make_detector(dictionary)
-    if num_markers is not None and not 1 <= num_markers <= MAX_POINTS // 4:
-        raise InputError(f"num_markers must be in 1..{MAX_POINTS // 4}, got {num_markers}")
+    if num_markers is not None:
+        check_count(num_markers, "num_markers", MAX_POINTS // 4)
     if path.is_file():
         root, names = path.parent, [path.name]
     elif path.is_dir():

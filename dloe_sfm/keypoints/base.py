@@ -78,6 +78,12 @@ def as_int(value) -> int | None:
     return None
 
 
+def check_count(value, name: str, most: int) -> None:
+    """InputError unless reader option ``name`` is an integer in 1..``most``."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= most:
+        raise InputError(f"{name} must be an integer in 1..{most}, got {brief(value)}")
+
+
 def index_pairs(value, num_points: int, where: str, *, base: int = 0, distinct: bool = False
                 ) -> list[tuple[int, int]]:
     """A JSON list of ``[a, b]`` point indices (``base`` 1: COCO's 1-based skeleton) as 0-based

@@ -26,6 +26,7 @@ from .base import (
     Keypoints,
     Layout,
     brief,
+    check_count,
     get_layout,
     mark_missing,
     named_layout,
@@ -98,6 +99,8 @@ def read(path: Path, *, layout: str | Layout | None = None, num_points: int | No
          ) -> Keypoints:
     """Read a keypoint CSV; the number of points is ``num_points``, the layout's (its
     ``source_points`` when a point_id needs them), or the largest point_id + 1."""
+    if num_points is not None:
+        check_count(num_points, "num_points", MAX_POINTS)
     if isinstance(layout, str):
         layout = named_layout(layout, path)
     bound = num_points

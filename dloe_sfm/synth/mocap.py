@@ -9,6 +9,7 @@ Points are projected without clipping to the image bounds (as in the paper's exp
 
 from __future__ import annotations
 
+import math
 import numbers
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.capture import Capture, project
+from ..core.options import shown
 from ..errors import InputError
 from ..io import read_mocap
 
@@ -83,12 +85,18 @@ class SimulationSettings:
         def check(name: str, ok: bool, what: str) -> None:
             if not ok:
                 raise InputError(f"--{name.replace('_', '-')} must be {what}, "
-                                 f"got {getattr(self, name)!r}")
+                                 f"got {shown(getattr(self, name))}")
 
-        finite = {k: isinstance(v, numbers.Real) and np.isfinite(v)
-                  for k, v in asdict(self).items() if v is not None}
+        def is_finite(value: object) -> bool:
+            try:
+                return isinstance(value, numbers.Real) and math.isfinite(value)
+            except OverflowError:  # an int beyond float's range
+                return False
+
+        values = asdict(self)
+        finite = {k: is_finite(v) for k, v in values.items()}
+        integral = {k: isinstance(v, numbers.Integral) for k, v in values.items()}
         check("rate", finite["rate"] and 0 < self.rate <= 1000, "in (0, 1000] frames/s")
-        integral = {k: isinstance(v, numbers.Integral) for k, v in asdict(self).items()}
         check("num_streams", integral["num_streams"] and 1 <= self.num_streams <= 64,
               "an integer in [1, 64]")
         check("noise", finite["noise"] and self.noise >= 0, "a finite number >= 0 px")

@@ -342,6 +342,16 @@ def edit_line(path: Path, startswith: str, edit: Callable[[list[str]], list[str]
     path.write_text("\n".join(lines) + "\n")
 
 
+def edited_model(edit: Callable[[Path], None], model: str = "bin"):
+    """A CSV reconstruction of a workspace whose `sparse/0` model `edit` has mangled."""
+    def setup(c: Ctx) -> Run:
+        ws = c.ws(model)
+        edit(ws / "sparse" / "0")
+        return Run(rec(ws, ws / "keypoints.csv", "csv", c.dir / "out", "--no-plots"),
+                   out=c.dir / "out", kind="dir")
+    return setup
+
+
 def build_cases() -> list[Case]:
     """Every case (names unique); nothing is written until a case's ``setup`` runs."""
     cases: list[Case] = []
@@ -557,16 +567,10 @@ def _output_safety(add) -> None:
 
 def _cameras(add) -> None:
     def txt_camera(param: int, value: str):
-        def setup(c: Ctx) -> Run:
-            ws = c.ws("txt")
-
-            def edit(f: list[str]) -> list[str]:
-                f[4 + param] = value
-                return f
-            edit_line(ws / "sparse" / "0" / "cameras.txt", "", edit)
-            return Run(rec(ws, ws / "keypoints.csv", "csv", c.dir / "out", "--no-plots"),
-                       out=c.dir / "out", kind="dir")
-        return setup
+        def edit(f: list[str]) -> list[str]:
+            f[4 + param] = value
+            return f
+        return edited_model(lambda m: edit_line(m / "cameras.txt", "", edit), "txt")
 
     # SIMPLE_RADIAL: f, cx, cy, k
     for name, param, value in [("negative_focal", 0, "-500"), ("zero_focal", 0, "0"),
@@ -577,20 +581,14 @@ def _cameras(add) -> None:
         add(f"cameras_txt_{name}", "error", "cameras", quick=name == "negative_focal")(
             txt_camera(param, value))
 
-    def model_setup(edit: Callable[[Path], None], model: str = "txt"):
-        def setup(c: Ctx) -> Run:
-            ws = c.ws(model)
-            edit(ws / "sparse" / "0")
-            return Run(rec(ws, ws / "keypoints.csv", "csv", c.dir / "out", "--no-plots"),
-                       out=c.dir / "out", kind="dir")
-        return setup
-
-    add("cameras_txt_unknown_model", "error", "cameras")(model_setup(
-        lambda m: edit_line(m / "cameras.txt", "", lambda f: [f[0], "FISHEYE_FOO", *f[2:]])))
-    add("cameras_txt_missing_param", "error", "cameras")(model_setup(
-        lambda m: edit_line(m / "cameras.txt", "", lambda f: f[:-1])))
-    add("cameras_txt_param_not_a_number", "error", "cameras")(model_setup(
-        lambda m: edit_line(m / "cameras.txt", "", lambda f: [*f[:4], "five", *f[5:]])))
+    add("cameras_txt_unknown_model", "error", "cameras")(edited_model(
+        lambda m: edit_line(m / "cameras.txt", "", lambda f: [f[0], "FISHEYE_FOO", *f[2:]]),
+        "txt"))
+    add("cameras_txt_missing_param", "error", "cameras")(edited_model(
+        lambda m: edit_line(m / "cameras.txt", "", lambda f: f[:-1]), "txt"))
+    add("cameras_txt_param_not_a_number", "error", "cameras")(edited_model(
+        lambda m: edit_line(m / "cameras.txt", "", lambda f: [*f[:4], "five", *f[5:]]),
+        "txt"))
 
     def bin_focal(value: float):
         def edit(model: Path) -> None:
@@ -600,10 +598,10 @@ def _cameras(add) -> None:
             (model / "cameras.bin").write_bytes(bytes(data))
         return edit
     add("cameras_bin_negative_focal", "error", "cameras")(
-        model_setup(bin_focal(-500.0), "bin"))
-    add("cameras_bin_zero_focal", "error", "cameras")(model_setup(bin_focal(0.0), "bin"))
-    add("cameras_bin_nan_focal", "error", "cameras")(model_setup(bin_focal(float("nan")), "bin"))
-    add("model_txt", "ok", "cameras", rerun=True)(model_setup(lambda m: None))
+        edited_model(bin_focal(-500.0)))
+    add("cameras_bin_zero_focal", "error", "cameras")(edited_model(bin_focal(0.0)))
+    add("cameras_bin_nan_focal", "error", "cameras")(edited_model(bin_focal(float("nan"))))
+    add("model_txt", "ok", "cameras", rerun=True)(edited_model(lambda m: None, "txt"))
 
     def capture_K(edit: Callable[[np.ndarray], None]):
         def setup(c: Ctx) -> Run:
@@ -702,14 +700,6 @@ def _corrupt_files(add) -> None:
         return path
     add("npz_header_bitflip", "error", "corrupt")(solve_file(header_flip))
 
-    def model_file(mangle: Callable[[Path], None], model: str = "bin"):
-        def setup(c: Ctx) -> Run:
-            ws = c.ws(model)
-            mangle(ws / "sparse" / "0")
-            return Run(rec(ws, ws / "keypoints.csv", "csv", c.dir / "out", "--no-plots"),
-                       out=c.dir / "out", kind="dir")
-        return setup
-
     def cut(name: str, keep: Callable[[int], int]) -> Callable[[Path], None]:
         def mangle(model: Path) -> None:
             data = (model / name).read_bytes()
@@ -724,33 +714,33 @@ def _corrupt_files(add) -> None:
         return mangle
 
     add("images_bin_truncated_half", "error", "corrupt", quick=True)(
-        model_file(cut("images.bin", lambda n: n // 2)))
+        edited_model(cut("images.bin", lambda n: n // 2)))
     add("images_bin_missing_last_byte", "error", "corrupt")(
-        model_file(cut("images.bin", lambda n: n - 1)))
-    add("images_bin_zero_bytes", "error", "corrupt")(model_file(cut("images.bin", lambda n: 0)))
+        edited_model(cut("images.bin", lambda n: n - 1)))
+    add("images_bin_zero_bytes", "error", "corrupt")(edited_model(cut("images.bin", lambda n: 0)))
     add("images_bin_huge_count", "error", "corrupt")(
-        model_file(overwrite("images.bin", 0, struct.pack("<Q", 2**62))))
-    add("cameras_bin_zero_bytes", "error", "corrupt")(model_file(cut("cameras.bin", lambda n: 0)))
+        edited_model(overwrite("images.bin", 0, struct.pack("<Q", 2**62))))
+    add("cameras_bin_zero_bytes", "error", "corrupt")(edited_model(cut("cameras.bin", lambda n: 0)))
     add("cameras_bin_truncated", "error", "corrupt")(
-        model_file(cut("cameras.bin", lambda n: n - 20)))
+        edited_model(cut("cameras.bin", lambda n: n - 20)))
     add("cameras_bin_huge_count", "error", "corrupt")(
-        model_file(overwrite("cameras.bin", 0, struct.pack("<Q", 2**40))))
+        edited_model(overwrite("cameras.bin", 0, struct.pack("<Q", 2**40))))
     add("points3D_bin_truncated", "error", "corrupt")(
-        model_file(cut("points3D.bin", lambda n: n // 3)))
-    add("points3D_bin_garbage", "error", "corrupt")(model_file(
+        edited_model(cut("points3D.bin", lambda n: n // 3)))
+    add("points3D_bin_garbage", "error", "corrupt")(edited_model(
         lambda m: (m / "points3D.bin").write_bytes(np.random.default_rng(1).bytes(4096))))
     add("images_txt_emptied", "error", "corrupt", quick=True)(
-        model_file(lambda m: (m / "images.txt").write_text(""), "txt"))
-    add("images_txt_garbage_line", "error", "corrupt")(model_file(
+        edited_model(lambda m: (m / "images.txt").write_text(""), "txt"))
+    add("images_txt_garbage_line", "error", "corrupt")(edited_model(
         lambda m: edit_line(m / "images.txt", "", lambda f: ["1", "one", "two"]), "txt"))
-    add("cameras_txt_garbage", "error", "corrupt")(model_file(
+    add("cameras_txt_garbage", "error", "corrupt")(edited_model(
         lambda m: (m / "cameras.txt").write_text("this is not a camera\n"), "txt"))
-    add("points3D_txt_garbage", "error", "corrupt")(model_file(
+    add("points3D_txt_garbage", "error", "corrupt")(edited_model(
         lambda m: (m / "points3D.txt").write_text("1 2 3 x y z\n\x00\x01\x02\n"), "txt"))
     add("model_missing_images_bin", "error", "corrupt")(
-        model_file(lambda m: (m / "images.bin").unlink()))
+        edited_model(lambda m: (m / "images.bin").unlink()))
     add("model_folder_empty", "error", "corrupt")(
-        model_file(lambda m: [f.unlink() for f in m.iterdir()]))
+        edited_model(lambda m: [f.unlink() for f in m.iterdir()]))
 
     def workspace_arg(make: Callable[[Ctx], Path]):
         def setup(c: Ctx) -> Run:

@@ -26,6 +26,7 @@ import concurrent.futures
 import fnmatch
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -53,7 +54,7 @@ MEMORY_LIMIT = 6 * 2**30
 MARKER = ".dloe-sfm-fuzz"  # marks a folder this harness owns (it may clear it)
 ERROR_PREFIX = "dloe-sfm: error:"
 # the package's log records (dloe_sfm/__init__.py) and tqdm redraws are not error messages
-LOG_RECORD = r"^\[\d{4}/\d\d/\d\d \d\d:\d\d:\d\d dloe_sfm [A-Z]+\] "
+LOG_RECORD = re.compile(r"^\[\d{4}/\d\d/\d\d \d\d:\d\d:\d\d dloe_sfm [A-Z]+\] ")
 # the child caps its own address space before importing the package (no preexec_fn: threads)
 BOOT = ("import resource, sys; resource.setrlimit(resource.RLIMIT_AS, ({0}, {0})); "
         "from dloe_sfm.cli import main; sys.exit(main(sys.argv[1:]))")
@@ -66,10 +67,8 @@ BOOT = ("import resource, sys; resource.setrlimit(resource.RLIMIT_AS, ({0}, {0})
 def visible_lines(stderr: str) -> list[str]:
     """What a terminal shows of stderr, without the package's log records: the text after the
     last carriage return of each line (progress bars redraw with ``\\r``)."""
-    import re
-
     lines = [line.rsplit("\r", 1)[-1] for line in stderr.split("\n")]
-    return [line for line in lines if line.strip() and not re.match(LOG_RECORD, line)]
+    return [line for line in lines if line.strip() and not LOG_RECORD.match(line)]
 
 
 def is_temp(name: str) -> bool:
@@ -129,15 +128,14 @@ def run_cli(argv: list[str], cwd: Path, timeout: float, *, interrupt: int | None
     beside ``out`` (the temporary output); exit code 'not interrupted' when none did."""
     tic = time.perf_counter()
     watch = None if out is None else out.parent
-    seen = set(os.listdir(watch)) if watch is not None and watch.is_dir() else set()
+    seen = listing(watch) if watch is not None else set()
     with tempfile.TemporaryFile() as err:
         proc = subprocess.Popen([sys.executable, "-c", BOOT.format(MEMORY_LIMIT), *argv],
                                 cwd=cwd, stdout=subprocess.DEVNULL, stderr=err, env=child_env())
         sent = interrupt is None
         try:
             while not sent and proc.poll() is None and time.perf_counter() - tic < timeout:
-                if watch is not None and watch.is_dir() and set(os.listdir(watch)) - seen - {
-                        out.name}:
+                if watch is not None and listing(watch) - seen - {out.name}:
                     proc.send_signal(interrupt)
                     sent = True
                 time.sleep(0.005)
