@@ -149,7 +149,13 @@ def _read_reconstruction(model_dir: Path) -> pycolmap.Reconstruction:
     try:
         if all((model_dir / f"{n}.bin").is_file() for n in MODEL_FILES):
             _check_binary_model(model_dir)
-        return pycolmap.Reconstruction(str(model_dir))
+        rec = pycolmap.Reconstruction(str(model_dir))
+        for image in rec.images.values():
+            image.name.encode()  # names that are not UTF-8 fail here (UnicodeDecodeError)
+        return rec
+    except UnicodeDecodeError as e:
+        raise InputError(f"{model_dir}: an image name in the COLMAP model is not UTF-8 ({e.reason} "
+                         f"at byte {e.start})") from None
     except InputError:  # a ValueError: _check_binary_model's message stands
         raise
     except OSError as e:

@@ -1,7 +1,15 @@
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
+
+# CI (CI=true) replays the same examples on every run, so a landing never hangs on a new random
+# draw; developers' runs explore new ones (and keep any failure in .hypothesis/)
+settings.register_profile("ci", derandomize=True, database=None)
+if os.environ.get("CI") == "true":
+    settings.load_profile("ci")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"

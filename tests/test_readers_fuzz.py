@@ -368,6 +368,21 @@ def load_copy(src: Path, dest: Path, name: str, content: bytes):
     return one_line_error(lambda: colmap.load_workspace(dest))
 
 
+@pytest.mark.parametrize("fmt", ["bin", "txt"])
+def test_image_name_that_is_not_utf8(models, tmp_path, fmt) -> None:
+    """A byte that is no UTF-8 in an image name: pycolmap reads it, Python cannot decode it."""
+    src = models[fmt]
+    name = "images.txt" if fmt == "txt" else "images.bin"
+    raw = (src / name).read_bytes()
+    first = colmap.load_workspace(src).image_names[0].encode()
+    assert raw.count(first) >= 1
+    dest = tmp_path / "m"
+    shutil.copytree(src, dest)
+    (dest / name).write_bytes(raw.replace(first, b"\x80" + first[1:], 1))
+    with pytest.raises(InputError, match="an image name in the COLMAP model is not UTF-8"):
+        colmap.load_workspace(dest)
+
+
 @FUZZ
 @given(data=st.data())
 def test_corrupted_colmap_models(models, tmp_path, data) -> None:
