@@ -18,7 +18,7 @@ from . import progress
 from .colmap import Workspace, natural_key
 from .core.capture import Capture
 from .errors import InputError
-from .keypoints.base import Keypoints, quoted, shown
+from .keypoints.base import Keypoints, Layout, quoted, shown
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -167,6 +167,14 @@ def _undistorted(ws: Workspace, name: str, pts: np.ndarray, min_score: float
     return x, np.where(ok, np.clip(np.nan_to_num(pts[:, 2], nan=0.0), 0.0, 1.0), 0.0)
 
 
+def observed_layout(layout: Layout, unobserved: list[int]) -> Layout:
+    """``layout`` without the points ``build_capture`` left out because no image observes them
+    (their indices: ``capture.extras["unobserved_points"]``), so it matches the capture."""
+    if not unobserved:
+        return layout
+    return layout.subset([j for j in range(layout.num_points) if j not in set(unobserved)])
+
+
 def build_capture(
     ws: Workspace,
     kp: Keypoints,
@@ -181,7 +189,10 @@ def build_capture(
     detection (then they are only logged); unregistered images are logged and skipped. Images
     without a usable detection (the detector found nobody, or only points below
     ``min_score``) are left out with one warning and listed in ``extras["skipped_images"]``
-    (a list of names); only when no image is left is it an error.
+    (a list of names); only when no image is left is it an error. Likewise points no image
+    observes are left out of x (listed by layout index in ``extras["unobserved_points"]``;
+    :func:`observed_layout` is the layout of the rest); only when none is observed is it an
+    error.
 
     ``person``: ``"largest"`` (bounding box) or an index: one detection per image, x (N, P, 2);
     an index beyond an image's detections leaves that image out (beyond every image's: an
@@ -272,17 +283,22 @@ def build_capture(
     if person != "all":
         x, confidence = x[:, 0], confidence[:, 0]
     seen = np.isfinite(x).all(axis=-1).reshape(len(names), -1, num_points)
-    never = np.flatnonzero(~seen.any(axis=(0, 1)))
-    if never.size:
-        missing = [kp.layout.point_names[i] for i in never]
-        raise InputError(f"{source}: point(s) {_some(missing)} observed in no image "
-                         "(lower min_score or use a layout without them)")
+    observed = seen.any(axis=(0, 1))
+    if not observed.any():
+        raise InputError(f"{source}: no point observed in any image")
+    unobserved = np.flatnonzero(~observed).tolist()
+    if unobserved:  # left out of the capture; ``observed_layout`` drops them from the layout
+        logger.warning("%d point(s) observed in no image, left out of the reconstruction: %s",
+                       len(unobserved), _some([kp.layout.point_names[j] for j in unobserved]))
+        x, confidence = x[..., observed, :], confidence[..., observed]
+        seen = seen[..., observed]
     stream, frame = assign_streams(ws, names, stream_pattern)
     extras = {"detection_index": detection if person == "all" else detection[:, 0],
-              "skipped_images": empty}
+              "skipped_images": empty, "unobserved_points": unobserved}
     if any(ws.frame_size(n) > 1 for n in names):
         extras["colmap_frame_id"] = np.array([ws.frame_id(n) for n in names], dtype=np.int64)
-    pairs = np.asarray(kp.layout.symmetric_pairs, dtype=np.int64).reshape(-1, 2)
+    pairs = np.asarray(observed_layout(kp.layout, unobserved).symmetric_pairs,
+                       dtype=np.int64).reshape(-1, 2)
     capture = Capture(
         x=x, K=np.stack(Ks), R=np.stack(Rs), C=np.stack(Cs), stream=stream, frame=frame,
         confidence=confidence, image_names=np.array(names), extras=extras,
@@ -293,6 +309,7 @@ def build_capture(
         raise InputError(f"{source}: the {len(names)} image(s) with keypoints form one stream; "
                          "at least two cameras / streams are needed")
     logger.info("capture: %d images, %d points, %d streams (%d lone photos), %d observations%s",
-                len(names), num_points, n_streams, int((stream < 0).sum()), int(seen.sum()),
+                len(names), int(observed.sum()), n_streams, int((stream < 0).sum()),
+                int(seen.sum()),
                 f", up to {slots} detections per image" if person == "all" else "")
     return capture.validate(source)

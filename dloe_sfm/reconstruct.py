@@ -22,7 +22,7 @@ from .core.solver import reconstruct
 from .errors import InputError
 from .io import atomic_path, check_output
 from .keypoints import FORMATS, Layout, load_layout, read_keypoints
-from .observations import PERSON_MODES, build_capture
+from .observations import PERSON_MODES, build_capture, observed_layout
 from .resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
@@ -215,11 +215,14 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
             "person": person,
             "unregistered_images": list(ws.unregistered),
             "skipped_images": list(capture.extras["skipped_images"]),
+            "unobserved_points": [kp.layout.point_names[j]
+                                  for j in capture.extras["unobserved_points"]],
         },
         "parameters": options.to_dict(),
         "timings": timings,
     }
-    export_reconstruction(out, capture, result, workspace=ws, layout=kp.layout, report=report,
+    layout = observed_layout(kp.layout, capture.extras["unobserved_points"])
+    export_reconstruction(out, capture, result, workspace=ws, layout=layout, report=report,
                           overwrite=overwrite, plots=plots, export_rate=export_rate)
     return out
 

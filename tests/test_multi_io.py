@@ -21,7 +21,7 @@ from dloe_sfm import Capture, InputError, Result, colmap
 from dloe_sfm.core.capture import project
 from dloe_sfm.export import export_outputs, frame_file_stem
 from dloe_sfm.keypoints import LAYOUTS, Layout, read_keypoints
-from dloe_sfm.observations import build_capture
+from dloe_sfm.observations import build_capture, observed_layout
 
 NUM_CAMERAS, NUM_FRAMES = 4, 10  # 40 images
 LAYOUT = LAYOUTS["COCO_18"]
@@ -97,12 +97,34 @@ def test_all_keeps_every_usable_detection(ws, tmp_path) -> None:
     capture.validate()
 
 
-def test_a_point_nobody_shows_is_refused(ws, tmp_path) -> None:
+def test_a_point_nobody_shows_is_left_out(ws, tmp_path) -> None:
     folder = write_people(tmp_path / "openpose", ws, dict.fromkeys(ws.image_names, 2))
     kp = read_keypoints("openpose", folder, workspace=ws)
+    full = build_capture(ws, kp, person="all")
     for people in kp.points.values():
         people[:, 16] = (np.nan, np.nan, 0.0)
-    with pytest.raises(InputError, match=r"openpose: point\(s\) 'REar' observed in no image"):
+    capture = build_capture(ws, kp, person="all")
+    assert capture.extras["unobserved_points"] == [16]
+    kept = [j for j in range(kp.num_points) if j != 16]
+    # the same detections, less REar (their slot order may differ: it is by detection size)
+    for got, want in zip(capture.x, full.x[:, :, kept], strict=True):
+        rows = [sorted(map(tuple, np.nan_to_num(a, nan=-1).reshape(len(a), -1)))
+                for a in (got, want)]
+        assert rows[0] == rows[1]
+    layout = observed_layout(kp.layout, capture.extras["unobserved_points"])
+    assert layout.point_names == [kp.layout.point_names[j] for j in kept]
+    assert "REar" not in layout.point_names
+    # edges and left/right pairs renumbered: the same named pairs, minus those of REar
+    named = {tuple(sorted((kp.layout.point_names[a], kp.layout.point_names[b])))
+             for a, b in kp.layout.edges if 16 not in (a, b)}
+    assert {tuple(sorted((layout.point_names[a], layout.point_names[b])))
+            for a, b in layout.edges} == named
+    np.testing.assert_array_equal(capture.symmetric_pairs, np.asarray(layout.symmetric_pairs))
+    assert ("LEar", "REar") not in [(layout.point_names[a], layout.point_names[b])
+                                    for a, b in layout.symmetric_pairs]
+    for people in kp.points.values():
+        people[:] = (np.nan, np.nan, 0.0)
+    with pytest.raises(InputError, match="no usable observation|no point observed"):
         build_capture(ws, kp, person="all")
 
 

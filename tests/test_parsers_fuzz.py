@@ -82,7 +82,7 @@ def through(fmt: str, path: Path, ws: colmap.Workspace, person, **options) -> Ke
     capture = outcome(lambda: build_capture(ws, kp, person=person))
     if capture is not None:
         capture.validate()
-        assert capture.num_points == kp.num_points
+        assert capture.num_points + len(capture.extras["unobserved_points"]) == kp.num_points
         assert set(capture.image_names) <= set(ws.image_names)
         assert not set(capture.extras["skipped_images"]) & set(capture.image_names)
     return kp

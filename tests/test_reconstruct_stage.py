@@ -142,6 +142,26 @@ def test_evaluate_scores_an_output_folder(scene, reconstructed, tmp_path, capsys
     assert "not a reconstruct output folder" in one_error_line(capsys.readouterr().err)
 
 
+def test_a_point_no_image_observes_is_left_out_and_reported(scene, reconstructed,
+                                                              tmp_path) -> None:
+    workspace, keypoints, _ = scene
+    folder = tmp_path / "openpose"
+    folder.mkdir()
+    for file in keypoints.iterdir():  # the nose (point 0) never detected
+        data = json.loads(file.read_text())
+        data["people"][0]["pose_keypoints_2d"][:3] = [0.0, 0.0, 0.0]
+        (folder / file.name).write_text(json.dumps(data))
+    out = stage.main(workspace, folder, "openpose", tmp_path / "out", plots=False)
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["unobserved_points"] == [LAYOUT.point_names[0]]
+    with np.load(out / "trajectories.npz") as got, \
+            np.load(reconstructed / "trajectories.npz") as full:
+        assert list(got["point_names"]) == LAYOUT.point_names[1:]
+        assert got["X"].shape == (full["X"].shape[0], len(LAYOUT.point_names) - 1, 3)
+        # the other points as without the change, to the solver's accuracy
+        assert np.abs(got["X"] - full["X"][:, 1:]).max() < 0.05
+
+
 def test_outputs_are_complete(scene, reconstructed) -> None:
     _, _, truth = scene
     frames = sorted((reconstructed / "frames").glob("*.ply"))

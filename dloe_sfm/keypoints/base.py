@@ -150,6 +150,17 @@ class Layout:
             raise InputError(f"layout {shown(self.name)}: a symmetric pair joins a point to "
                              "itself")
 
+    def subset(self, keep: list[int]) -> Layout:
+        """The layout of the points ``keep`` (indices, in order), renumbered: edges and pairs
+        between kept points only."""
+        new = {int(j): k for k, j in enumerate(keep)}
+        return Layout(
+            name=self.name, point_names=[self.point_names[j] for j in new],
+            edges=[(new[a], new[b]) for a, b in self.edges if a in new and b in new],
+            symmetric_pairs=[(new[a], new[b]) for a, b in self.symmetric_pairs
+                             if a in new and b in new],
+        )
+
 
 @dataclass
 class Keypoints:
