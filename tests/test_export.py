@@ -11,6 +11,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import scipy.sparse as sp
+from scenes import look_at
 
 from dloe_sfm import Capture, InputError, Result
 from dloe_sfm import export as export_module
@@ -23,14 +24,6 @@ F, W_IMG, H_IMG = 800.0, 640.0, 480.0
 
 
 LAYOUT = Layout("toy", ["head", "neck", "hip", "knee", "foot"], [(0, 1), (1, 2), (2, 3), (3, 4)])
-
-
-def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World-to-camera rotation of a camera at ``centre`` looking at ``target`` (z up)."""
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z])
 
 
 def toy_capture() -> tuple[Capture, Result, np.ndarray]:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 from PIL import Image, ImageSequence
+from scenes import look_at
 
 from dloe_sfm import Capture, Result, cli, viz
 from dloe_sfm.core.capture import project
@@ -22,14 +23,6 @@ from dloe_sfm.reconstruct import export_reconstruction
 
 N, STREAMS, P = 18, 3, 5
 LAYOUT = Layout("toy", ["head", "neck", "hip", "knee", "foot"], [(0, 1), (1, 2), (2, 3), (3, 4)])
-
-
-def look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """World-to-camera rotation of a camera at ``centre`` looking at ``target`` (z up)."""
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z])
 
 
 def toy(n: int = N, subjects: int = 1, events: int = 1) -> tuple[Capture, Result]:
