@@ -21,8 +21,9 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .colmap import CameraSpec, ImageSpec, list_images, write_model
+from .colmap import CameraSpec, ImageSpec, write_model
 from .errors import InputError
+from .images import list_images
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -1,4 +1,4 @@
-"""``dloe-sfm``: one subcommand per pipeline stage (also ``python -m dloe_sfm.<stage>``)."""
+"""``dloe-sfm``: one subcommand per pipeline stage (also ``python -m <its module>``, ``STAGES``)."""
 
 from __future__ import annotations
 
@@ -17,17 +17,23 @@ from .errors import InputError
 
 # subcommand -> (module with ``configure_parser(parser)`` and ``run(args) -> int``, summary)
 STAGES = {
-    "solve": ("dloe_sfm.solve", "run DLOE on a capture file and write a result file"),
+    "solve": ("dloe_sfm.stages.solve", "run DLOE on a capture file and write a result file"),
     "reconstruct": (
-        "dloe_sfm.reconstruct",
+        "dloe_sfm.stages.reconstruct",
         "reconstruct moving points from keypoints on a COLMAP workspace",
     ),
-    "simulate": ("dloe_sfm.simulate", "simulate an unsynchronised capture of a mocap sequence"),
+    "simulate": (
+        "dloe_sfm.stages.simulate", "simulate an unsynchronised capture of a mocap sequence"
+    ),
     "evaluate": ("dloe_sfm.evaluate", "score a result against ground truth (mm, Kendall tau)"),
-    "demo": ("dloe_sfm.demo", "run the whole chain on the bundled demo workspace"),
-    "benchmark": ("dloe_sfm.benchmark", "the paper's experiments with every baseline"),
-    "import-calibration": ("dloe_sfm.import_calibration", "calibration file -> COLMAP model"),
-    "view": ("dloe_sfm.view", "play a reconstruct output in open3d's window (or write a GIF)"),
+    "demo": ("dloe_sfm.stages.demo", "run the whole chain on the bundled demo workspace"),
+    "benchmark": ("dloe_sfm.stages.benchmark", "the paper's experiments with every baseline"),
+    "import-calibration": (
+        "dloe_sfm.stages.import_calibration", "calibration file -> COLMAP model"
+    ),
+    "view": (
+        "dloe_sfm.stages.view", "play a reconstruct output in open3d's window (or write a GIF)"
+    ),
 }
 
 
@@ -62,7 +68,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 
 def run_stage(module_name: str, argv: list[str] | None = None) -> int:
-    """Entry of ``python -m dloe_sfm.<stage>``: the stage's own parser, same error handling."""
+    """Entry of ``python -m <stage module>``: the stage's own parser, same error handling."""
     module = importlib.import_module(module_name)
     name = module_name if module_name != "__main__" else module.__spec__.name
     parser = argparse.ArgumentParser(prog=f"python -m {name}", description=module.__doc__)

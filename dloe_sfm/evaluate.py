@@ -12,9 +12,11 @@ from pathlib import Path
 import numpy as np
 
 from .core.capture import Capture
+from .core.clocks import time_chain
 from .core.options import Options
+from .core.problem import initialise, normalise
 from .core.sequencing import kendall_tau
-from .core.solver import initialise, oracle_reconstruct
+from .core.steps import x_step
 from .errors import InputError
 from .io import NpzReader, atomic_path, check_not_input, load_capture, load_result
 
@@ -47,6 +49,24 @@ def swaps_undone(swaps: np.ndarray, pairs: np.ndarray, shape: tuple[int, int]) -
     for n, a, _ in swaps:
         count[n, np.flatnonzero(pairs[:, 0] == a)] += 1
     return count % 2 == 1
+
+
+def oracle_reconstruct(
+    capture: Capture, times: np.ndarray, *, lambda1: float = 0.0, lambda2: float = np.inf
+) -> np.ndarray:
+    """DLOE's X-step with the true temporal chain as W: the accuracy reference.
+
+    Every image is linked to its temporal predecessor and successor among all images, with
+    barycentric weights from the true times (so constant-velocity motion is reproduced exactly).
+    The first and last images have no neighbour on one side: their rows get D = 0, and they are
+    placed by their neighbours' rows. Returns (N, P, 3) in world units.
+    """
+    W, D = time_chain(times)
+    options = Options()
+    X0 = initialise(capture, options)
+    norm = normalise(capture, options, X0)
+    X = x_step(W, D, norm.problem, lambda1=lambda1, lambda2=lambda2, X_prev=norm.to_normal(X0))
+    return norm.to_world(X)
 
 
 def evaluate(

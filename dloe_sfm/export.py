@@ -11,7 +11,7 @@ import csv
 import json
 import logging
 import math
-import re
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +19,7 @@ import numpy as np
 import open3d as o3d
 
 from . import progress
+from .columns import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
 from .core.capture import Capture, project
 from .core.result import Result
 from .errors import InputError
@@ -26,6 +27,7 @@ from .io import atomic_path, check_output, save_npz
 from .mocap_export import write_mocap
 
 if TYPE_CHECKING:
+    from .colmap import Workspace
     from .keypoints.base import Layout
 
 logger = logging.getLogger("dloe_sfm")
@@ -59,40 +61,6 @@ def error_stats(errors: np.ndarray) -> dict[str, float | int | None]:
     }
 
 
-def point_colors(num_points: int) -> np.ndarray:
-    """(P, 3) uint8: one distinct, stable colour per point id (golden-ratio hues)."""
-    hue = (np.arange(num_points) * 0.618033988749895) % 1.0
-    # HSV -> RGB with s = 0.75, v = 0.95
-    k = (np.array([5.0, 3.0, 1.0])[None, :] + hue[:, None] * 6.0) % 6.0
-    rgb = 0.95 - 0.95 * 0.75 * np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
-    return np.round(rgb * 255).astype(np.uint8)
-
-
-def frame_file_stem(rank: int, image_name: str, num_images: int) -> str:
-    """``NNNNN_<stem>``: zero-padded rank, then the image name without extension, with ``/``
-    and other characters unsafe in file names replaced by ``_`` (``cam01/0012.jpg`` ->
-    ``cam01_0012``: a bare stem would collide across camera folders)."""
-    width = max(5, len(str(max(num_images - 1, 0))))
-    stem = str(Path(image_name).with_suffix("")).replace("\\", "/")
-    stem = re.sub(r"[^A-Za-z0-9._-]+", "_", stem).strip("_") or "image"
-    return f"{rank:0{width}d}_{stem}"
-
-
-def solved_capture(capture: Capture, result: Result) -> Capture:
-    """The (N, P', 2) observations ``result.X`` refers to: ``result.solved`` when the solver
-    made one (subjects aggregated, left/right swaps undone), else ``capture`` itself."""
-    return capture if result.solved is None else result.solved
-
-
-def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:
-    """(P',) subject id and (P',) layout point id of every column of ``result.X``; one subject:
-    subject 0 and the column index."""
-    if result.subject_id is None:
-        return (np.zeros(result.X.shape[1], dtype=np.int64),
-                np.arange(result.X.shape[1], dtype=np.int64))
-    return result.subject_id.astype(np.int64), result.point_id.astype(np.int64)
-
-
 def detection_subjects(capture: Capture, result: Result) -> np.ndarray | None:
     """(N, M') subject of each detection of every image, in the order of the image's keypoint
     list up to its last detection used (-1: not used, e.g. too few points or a stray), from
@@ -107,18 +75,6 @@ def detection_subjects(capture: Capture, result: Result) -> np.ndarray | None:
     rows, slots = np.nonzero(index >= 0)
     out[rows, index[rows, slots]] = result.assignment[rows, slots]
     return out
-
-
-def column_edges(edges: np.ndarray, subject_id: np.ndarray, point_id: np.ndarray) -> np.ndarray:
-    """(E', 2) skeleton edges between columns of X: the layout's (E, 2) edges between point ids,
-    repeated for every subject (subject_id, point_id (P',) as from ``column_ids``)."""
-    column = {(int(s), int(j)): k for k, (s, j) in enumerate(zip(subject_id, point_id,
-                                                                   strict=True))}
-    out = [(column[s, int(a)], column[s, int(b)])
-           for s in np.unique(subject_id).tolist()
-           for a, b in np.asarray(edges, dtype=np.int64).reshape(-1, 2)
-           if (s, int(a)) in column and (s, int(b)) in column]
-    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, *, colors: np.ndarray | None = None,
@@ -388,22 +344,47 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     return full_report
 
 
-def export_outputs(out_dir: Path | str, capture: Capture, result: Result, *,
-                   static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
-                   layout: Layout | None = None, report: dict | None = None,
-                   overwrite: bool = False) -> Path:
-    """Write the outputs of docs/interfaces.md ("Reconstruct outputs") to ``out_dir``
-    atomically; returns ``out_dir``.
+def export_outputs(out: Path | str, capture: Capture, result: Result, *,
+                   workspace: Workspace | None = None, static_xyz: np.ndarray | None = None,
+                   static_rgb: np.ndarray | None = None, layout: Layout | None = None,
+                   report: dict | None = None, overwrite: bool = False, plots: bool = True,
+                   export_rate: float | None = None) -> dict:
+    """Write the outputs of docs/interfaces.md ("Reconstruct outputs") of a solved capture to
+    ``out`` atomically (``write_outputs``, and ``plots/`` unless ``plots=False``:
+    ``viz.write_plots``); returns the report written to ``report.json``.
 
-    An existing ``out_dir`` is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it
-    (``io.check_output``), in which case it is replaced only once the new folder is complete.
+    ``workspace``: the COLMAP workspace of the capture, whose folders ``out`` must not be in;
+    its static points go to the animation and, unless ``static_xyz`` (M, 3) / ``static_rgb``
+    (M, 3) uint8 are given, to ``static.ply``; its images to the overlays. An existing ``out``
+    is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it (``io.check_output``),
+    in which case it is replaced only once the new folder is complete.
     """
-    out_dir = Path(out_dir)
-    with atomic_path(check_output(out_dir, overwrite=overwrite), mark=True) as tmp:
+    out = Path(out)
+    target = check_output(out, overwrite=overwrite, protected=[] if workspace is None else
+                          [workspace.model_dir, workspace.image_dir])
+    if workspace is not None and static_xyz is None:
+        static_xyz, static_rgb = workspace.static_xyz, workspace.static_rgb
+    tic = time.perf_counter()
+    with atomic_path(target, mark=True) as tmp:
         tmp.mkdir()
-        summary = write_outputs(tmp, capture, result, static_xyz=static_xyz, static_rgb=static_rgb,
-                                layout=layout, report=report)
-    all_err = summary["reprojection_error_px"]["all"]
-    logger.info("wrote %s: %d frames, mean reprojection error %s px", out_dir, capture.num_images,
-                "n/a" if all_err["mean"] is None else f"{all_err['mean']:.3f}")
-    return out_dir
+        summary = write_outputs(tmp, capture, result, static_xyz=static_xyz,
+                                static_rgb=static_rgb, layout=layout, report=report,
+                                export_rate=export_rate)
+        if plots:
+            from . import viz  # matplotlib / cv2 only when plotting
+
+            viz.write_plots(tmp / "plots", capture, result, workspace=workspace,
+                            edges=None if layout is None else
+                            np.asarray(layout.edges, dtype=np.int64).reshape(-1, 2),
+                            point_names=None if layout is None else list(layout.point_names))
+    logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz / .trc / .c3d, "
+                "report.json%s)",
+                time.perf_counter() - tic, out, ", plots/" if plots else "")
+    error = summary["reprojection_error_px"]["all"]
+    if error["mean"] is not None:
+        logger.info("mean reprojection error %.3f px (median %.3f) over %d observations",
+                    error["mean"], error["median"], error["count"])
+    logger.info("%d subject(s); robust loss: %d observation(s) down-weighted, %d left/right "
+                "swap(s) fixed (report.json)", summary["subjects"],
+                summary["downweighted"]["count"], summary["swaps_fixed"]["count"])
+    return summary

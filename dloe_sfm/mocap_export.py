@@ -98,7 +98,7 @@ def _rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray
 def image_times(capture: Capture, result: Result) -> Timeline:
     """Every image's time in reference frames and the export's default rate (module docstring).
 
-    ``capture`` is the one ``result.X`` refers to (``export.solved_capture``).
+    ``capture`` is the one ``result.X`` refers to (``columns.solved_capture``).
     """
     n = capture.num_images
     rank = result.rank
@@ -251,7 +251,7 @@ def write_mocap(folder: Path, capture: Capture, result: Result, names: list[str]
                 export_rate: float | None = None) -> tuple[np.ndarray, dict]:
     """``trajectories.trc``, ``trajectories.c3d`` and ``trajectories_wide.csv`` in ``folder``.
 
-    ``capture`` as from ``export.solved_capture``, ``names`` (P',) the columns' marker names;
+    ``capture`` as from ``columns.solved_capture``, ``names`` (P',) the columns' marker names;
     ``export_rate``: grid samples per reference frame (default: the fastest stream's rate).
     Returns every image's time (N,) and the report's ``mocap_export`` entry.
     """

@@ -15,9 +15,10 @@ from pathlib import PurePosixPath
 import numpy as np
 
 from . import progress
-from .colmap import Workspace, natural_key
+from .colmap import Workspace
 from .core.capture import Capture
 from .errors import InputError
+from .images import natural_key
 from .keypoints.base import Keypoints, Layout, quoted, shown
 
 logger = logging.getLogger("dloe_sfm")

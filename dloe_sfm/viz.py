@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -17,10 +18,14 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from PIL import Image
 
+from .columns import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
 from .core import events as core_events
 from .core.capture import Capture
 from .core.result import Result
 from .io import atomic_path
+
+if TYPE_CHECKING:
+    from .colmap import Workspace
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -409,8 +414,8 @@ def animate(X: np.ndarray, order: np.ndarray, path: Path | str, *,
     static points, on fixed equal-aspect axes.
 
     X (N, P, 3) world points (NaN = none), order (N,) image indices by estimated time,
-    image_names (N,), events (N,) int, edges (E, 2) columns of X (``export.column_edges``),
-    colors (P, 3) uint8 (``export.point_colors``; default tab10), subject_id (P,) int (a
+    image_names (N,), events (N,) int, edges (E, 2) columns of X (``columns.column_edges``),
+    colors (P, 3) uint8 (``columns.point_colors``; default tab10), subject_id (P,) int (a
     marker shape per subject), observed (N, P) bool (filled: detected, hollow: estimated),
     static_xyz (M, 3) / static_rgb (M, 3) uint8: COLMAP's points, those in the cube of
     ``scene_box`` (at most ``max_static``) drawn; a thin trail follows every point through
@@ -480,3 +485,59 @@ def animate(X: np.ndarray, order: np.ndarray, path: Path | str, *,
             title.set_text(f"{name}rank {rank} / {n - 1}{event}")
             writer.grab_frame()
     return path
+
+
+def write_plots(folder: Path, capture: Capture, result: Result, *,
+                workspace: Workspace | None = None,
+                edges: np.ndarray | None = None, point_names: list[str] | None = None,
+                num_overlays: int = 4) -> list[Path]:
+    """Sequence, affinity, event and trajectory plots, the animation (``animation.gif``, with
+    the workspace's static points), plus reprojection overlays on ``num_overlays`` images
+    spread over the estimated order when the workspace's image files exist. ``edges`` (E, 2)
+    and ``point_names`` (P,) are the layout's (point ids); with several subjects, skeletons
+    and trajectories are drawn per subject."""
+    capture = solved_capture(capture, result)
+    subject_id, point_id = column_ids(result)
+    subjects = None if result.subject_id is None else subject_id
+    edges = column_edges(edges if edges is not None else [], subject_id, point_id)
+    folder.mkdir(parents=True, exist_ok=True)
+    written = [
+        plot_sequence(result, capture, folder / "sequence.png"),
+        plot_affinity(result, folder / "affinity.png"),
+        plot_events(result, folder / "events.png"),
+        plot_trajectories(result.X, result.order, folder / "trajectories.png",
+                          point_names=None if point_names is None else
+                          [point_names[j] for j in point_id],
+                          observed=capture.visible, subject_id=subjects),
+        animate(result.X, result.order, folder / "animation.gif",
+                image_names=capture.image_names, events=result.events, edges=edges,
+                colors=point_colors(int(point_id.max()) + 1)[point_id], subject_id=subjects,
+                observed=capture.visible,
+                static_xyz=None if workspace is None else workspace.static_xyz,
+                static_rgb=None if workspace is None else workspace.static_rgb,
+                up=-capture.R[:, 1].mean(axis=0)),  # image up is -y of the camera
+    ]
+    if workspace is None or workspace.image_dir is None or num_overlays <= 0:
+        return written
+
+    rays = capture.rays()
+    picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
+    for i in dict.fromkeys(picks.tolist()):
+        name = str(capture.image_names[i])
+        image_path = Path(workspace.image_dir) / name
+        if not image_path.is_file():
+            logger.debug("no image file %s: no overlay", image_path)
+            continue
+        # any point on the observed ray projects to the observed (distorted) pixel
+        observed = np.full((capture.num_points, 2), np.nan)
+        vis = capture.visible[i]
+        if vis.any():
+            observed[vis] = workspace.project(name, capture.C[i] + rays[i, vis])
+        reprojected = workspace.project(name, result.X[i])
+        rank = int(result.rank[i])
+        written.append(plot_reprojection(
+            image_path, observed, reprojected, edges,
+            folder / "overlays" / f"{frame_file_stem(rank, name, capture.num_images)}.png",
+            title=f"{name} (rank {rank})", subject_id=subjects,
+        ))
+    return written

@@ -159,9 +159,9 @@ def test_every_stage_has_help():
         r = dloe(stage, "--help")
         assert r.returncode == 0 and "usage" in r.stdout, (stage, r.stderr)
     r = subprocess.run(
-        [sys.executable, "-m", "dloe_sfm.solve", "--help"], capture_output=True, text=True
+        [sys.executable, "-m", "dloe_sfm.stages.solve", "--help"], capture_output=True, text=True
     )
-    assert r.returncode == 0 and "python -m dloe_sfm.solve" in r.stdout
+    assert r.returncode == 0 and "python -m dloe_sfm.stages.solve" in r.stdout
 
 
 def test_version_logging_and_progress_follow_the_flags(capture_file, tmp_path):

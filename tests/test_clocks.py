@@ -5,9 +5,10 @@ import pytest
 
 from dloe_sfm.core.clocks import fit_clocks, ray_equations, spline_residuals, time_chain
 from dloe_sfm.core.options import Clocks, Options
+from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
-from dloe_sfm.core.solver import initialise, oracle_reconstruct, reconstruct
-from dloe_sfm.evaluate import point_errors
+from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.evaluate import oracle_reconstruct, point_errors
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
 SPARSE = dict(rate=7.5, drop=0.3, missing=0.3)

@@ -9,6 +9,7 @@ from scipy.optimize import minimize
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.init import pseudo_triangulate
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.problem import build_problem
 from dloe_sfm.core.sequencing import (
     arc_distance,
     dtw_positions,
@@ -20,17 +21,17 @@ from dloe_sfm.core.sequencing import (
     orient,
 )
 from dloe_sfm.core.simplex_qp import solve_simplex_qp
-from dloe_sfm.core.solver import build_problem, oracle_reconstruct, reconstruct
+from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.steps import (
     chain_matrix,
     d_step,
     row_terms,
-    select_candidates,
     smoothness_matrix,
     total_cost,
-    w_step,
     x_step,
 )
+from dloe_sfm.core.wstep import select_candidates, w_step
+from dloe_sfm.evaluate import oracle_reconstruct
 from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
 
 

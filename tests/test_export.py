@@ -15,8 +15,9 @@ from scenes import look_at
 
 from dloe_sfm import Capture, InputError, Result
 from dloe_sfm import export as export_module
+from dloe_sfm.columns import frame_file_stem
 from dloe_sfm.core.capture import project
-from dloe_sfm.export import export_outputs, frame_file_stem, reprojection_errors
+from dloe_sfm.export import export_outputs, reprojection_errors
 from dloe_sfm.keypoints import Layout
 
 N_PER_STREAM, STREAMS, P = 6, 3, 5
@@ -64,7 +65,8 @@ def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
     out = tmp_path_factory.mktemp("export") / "out"
     static_rgb = np.array([[255, 0, 0], [0, 128, 255], [10, 20, 30]], dtype=np.uint8)
     export_outputs(out, capture, result, static_xyz=X[0, :3], static_rgb=static_rgb, layout=LAYOUT,
-                   report={"inputs": {"workspace": "synthetic"}, "parameters": {"lambda1": 1e-5}})
+                   report={"inputs": {"workspace": "synthetic"}, "parameters": {"lambda1": 1e-5}},
+                   plots=False)
     return out, capture, result
 
 
@@ -171,9 +173,9 @@ def test_existing_out_dir_is_refused_unless_overwrite(tmp_path) -> None:
         export_outputs(out, capture, result, overwrite=True)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     (out / "keep.txt").unlink()
-    export_outputs(out, capture, result, overwrite=True)  # an empty folder
+    export_outputs(out, capture, result, overwrite=True, plots=False)  # an empty folder
     (out / "stale.txt").write_text("an earlier export")
-    export_outputs(out, capture, result, overwrite=True)  # our own output (.dloe_sfm marker)
+    export_outputs(out, capture, result, overwrite=True, plots=False)  # ours (.dloe_sfm marker)
     assert not (out / "stale.txt").exists() and (out / "report.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 

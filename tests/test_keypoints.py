@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -77,6 +79,21 @@ def test_pose2sim_folders_match_by_stem(tmp_path) -> None:
     mapping = match_names(list(kp.points), names, tmp_path)
     assert mapping["cam01_json/cam01.0002"] == "cam01/cam01.0002.png"
     assert mapping["cam02_json/cam02.0005"] == "cam02/cam02.0005.png"
+
+
+def test_reading_openpose_does_not_load_pycolmap(tmp_path) -> None:
+    """The keypoint adapters run without pycolmap: only the workspace side needs it."""
+    rng = np.random.default_rng(0)
+    for k in range(2):
+        openpose_file(tmp_path / f"frame{k}_keypoints.json", random_people(rng, 1))
+    code = (
+        "import sys, dloe_sfm.keypoints\n"
+        f"kp = dloe_sfm.keypoints.read_keypoints('openpose', {str(tmp_path)!r})\n"
+        "assert len(kp.points) == 2, sorted(kp.points)\n"
+        "assert 'pycolmap' not in sys.modules, 'reading OpenPose files imported pycolmap'\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
 
 
 def test_match_names_rules() -> None:

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 from test_export import LAYOUT, toy_capture
 from test_reconstruct_stage import write_openpose
 
-import dloe_sfm.reconstruct as stage
+import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import Capture, InputError, Result, cli, colmap
 from dloe_sfm.export import export_outputs, write_outputs
 from dloe_sfm.keypoints import Layout
@@ -188,7 +188,7 @@ def test_rank_times_between_reference_frames_and_events_not_bridged() -> None:
 def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
     capture, result, _ = toy_capture()
     out = tmp_path_factory.mktemp("mocap") / "out"
-    export_outputs(out, capture, result, layout=LAYOUT)
+    export_outputs(out, capture, result, layout=LAYOUT, plots=False)
     return out, capture, result
 
 
@@ -242,7 +242,8 @@ def test_several_subjects_are_prefixed(tmp_path) -> None:
     capture, result, _ = toy_capture()
     result.subject_id = np.array([0, 0, 0, 1, 1])
     result.point_id = np.array([0, 1, 2, 0, 1])
-    export_outputs(tmp_path / "out", capture, result, layout=Layout("three", ["a", "b", "c"]))
+    export_outputs(tmp_path / "out", capture, result, layout=Layout("three", ["a", "b", "c"]),
+                   plots=False)
     names = ["s0_a", "s0_b", "s0_c", "s1_a", "s1_b"]
     check_trc_and_c3d(tmp_path / "out" / "trajectories.trc",
                       tmp_path / "out" / "trajectories.c3d", names)

@@ -16,10 +16,11 @@ from test_export import toy_capture
 from test_keypoints import openpose_file
 from test_reconstruct_stage import body_at
 
-import dloe_sfm.reconstruct as stage
+import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import Capture, InputError, Result, colmap
+from dloe_sfm.columns import frame_file_stem
 from dloe_sfm.core.capture import project
-from dloe_sfm.export import export_outputs, frame_file_stem
+from dloe_sfm.export import export_outputs
 from dloe_sfm.keypoints import LAYOUTS, Layout, read_keypoints
 from dloe_sfm.observations import build_capture, observed_layout
 
@@ -201,7 +202,7 @@ def two_subjects() -> tuple[Capture, Result]:
 def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
     capture, result = two_subjects()
     out = tmp_path_factory.mktemp("export") / "out"
-    export_outputs(out, capture, result, layout=TOY)
+    export_outputs(out, capture, result, layout=TOY, plots=False)
     return out, capture, result
 
 
@@ -293,7 +294,7 @@ def test_stage_exports_people_of_a_workspace(ws, tmp_path) -> None:
         point_id=np.tile(np.arange(p), 2), assignment=np.argsort(slots, axis=1), solved=solved,
     )
     out = tmp_path / "out"
-    report = stage.export_reconstruction(out, capture, result, workspace=ws, layout=kp.layout)
+    report = export_outputs(out, capture, result, workspace=ws, layout=kp.layout)
     assert report["reprojection_error_px"]["all"]["max"] < 1e-6
     assert report["subjects"] == 2 and report["downweighted"]["count"] == 0
     for png in ("sequence.png", "affinity.png", "events.png", "trajectories.png"):

@@ -69,7 +69,6 @@ VALID = {
     "robust_iterations": _int(0, 10**6),
     "fix_swaps": _flag,
     "segment_events": _flag,
-    "progress": _flag,
 }
 
 
@@ -145,7 +144,6 @@ BAD = [
     ("robust_iterations", -1, "an integer in [0, 1000000]"),
     ("fix_swaps", [True], "true or false"),
     ("segment_events", {"a": 1}, "true or false"),
-    ("progress", 2.5, "true or false"),
 ]
 
 
@@ -191,7 +189,7 @@ BAD_SETS = [
     ("noise_px=inf", "a finite number >= 0, got inf"),
     ("noise_px=none", "a finite number >= 0, got 'none'"),
     ("lambda2=-inf", "None or a number > 0 (inf allowed), got -inf"),
-    ("progress=maybe", "true or false, got 'maybe'"),
+    ("segment_events=maybe", "true or false, got 'maybe'"),
     ("embedding=x", "one of spectral, mds, shp, affine, got 'x'"),
 ]
 
@@ -241,7 +239,7 @@ VALID_EDGES = [
     ("stream_clocks", True, Clocks.ON),
     ("stream_clocks", "false", Clocks.OFF),
     ("robust_loss", "none", RobustLoss.NONE),
-    ("progress", np.bool_(True), True),
+    ("fix_swaps", np.bool_(False), False),
 ]
 
 
@@ -260,7 +258,7 @@ def _some_options() -> list[Options]:
         Options(lambda2=INF, robust_scale_px=2.5, embedding="spectral", stream_clocks="on",
                 num_candidates=12, omega=1.0, fixed_degree=False, tolerance=0.0),
         Options(noise_px=2.0, lambda1=1.0 / 3.0, distance="euclidean", robust_loss="huber",
-                shared_rate=True, progress=True, max_iterations=7, soft_iterations=0),
+                shared_rate=True, segment_events=False, max_iterations=7, soft_iterations=0),
     ]
 
 

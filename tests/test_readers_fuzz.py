@@ -492,7 +492,7 @@ def test_object_bytes_in_npz_named_like_text(tmp_path) -> None:
 
 
 def test_simulate_settings_and_outputs(assets_dir, tmp_path, solved) -> None:
-    from dloe_sfm.simulate import main as simulate_main
+    from dloe_sfm.stages.simulate import main as simulate_main
 
     mocap = assets_dir / "mocap" / "walking_1.npz"
     for bad, message in (({"rate": 0.0}, r"--rate must be in \(0, 1000\]"),

@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-from test_export import toy_capture
 
 import dloe_sfm
-import dloe_sfm.reconstruct as stage
+import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import cli, colmap
 from dloe_sfm.core.solver import reconstruct as solver
 from dloe_sfm.keypoints.base import LAYOUTS
@@ -251,7 +250,7 @@ def test_existing_out_dir_is_refused_by_the_cli(scene, tmp_path) -> None:
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     proc = subprocess.run(
-        [sys.executable, "-m", "dloe_sfm.reconstruct", str(workspace), "--keypoints",
+        [sys.executable, "-m", "dloe_sfm.stages.reconstruct", str(workspace), "--keypoints",
          str(keypoints), "--format", "openpose", "--out", str(out)],
         capture_output=True, text=True, timeout=120,
     )
@@ -260,8 +259,7 @@ def test_existing_out_dir_is_refused_by_the_cli(scene, tmp_path) -> None:
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 
-def test_package_reconstruct_stays_callable() -> None:
-    """Importing the stage module rebinds ``dloe_sfm.reconstruct``; it must still solve."""
-    capture, _, _ = toy_capture()
-    assert dloe_sfm.reconstruct is stage
-    np.testing.assert_array_equal(dloe_sfm.reconstruct(capture).X, solver(capture).X)
+def test_stage_module_leaves_the_solver_function() -> None:
+    """The stage module (imported above) does not shadow the package's ``reconstruct``."""
+    assert stage.__name__ == "dloe_sfm.stages.reconstruct"
+    assert callable(dloe_sfm.reconstruct) and dloe_sfm.reconstruct is solver

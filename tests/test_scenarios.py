@@ -13,12 +13,12 @@ from dloe_sfm.core.options import Options, RobustLoss
 from dloe_sfm.core.robust import find_swaps, loss_weights
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.synth import SimulationSettings, load_mocap
+from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
     add_outliers,
     simulate_events,
     simulate_people,
     swap_symmetric,
-    symmetric_pairs,
 )
 
 MOTIONS = ("walking_1", "jumping_1", "basketball_signal_1")

@@ -18,8 +18,8 @@ from scenes import look_at
 
 from dloe_sfm import Capture, Result, cli, viz
 from dloe_sfm.core.capture import project
+from dloe_sfm.export import export_outputs
 from dloe_sfm.keypoints import Layout
-from dloe_sfm.reconstruct import export_reconstruction
 
 N, STREAMS, P = 18, 3, 5
 LAYOUT = Layout("toy", ["head", "neck", "hip", "knee", "foot"], [(0, 1), (1, 2), (2, 3), (3, 4)])
@@ -70,7 +70,7 @@ def out(tmp_path_factory) -> Path:
     workspace = types.SimpleNamespace(static_xyz=xyz, static_rgb=rgb, image_dir=None,
                                       model_dir=None)
     folder = tmp_path_factory.mktemp("view") / "out"
-    export_reconstruction(folder, capture, result, workspace=workspace, layout=LAYOUT)
+    export_outputs(folder, capture, result, workspace=workspace, layout=LAYOUT)
     return folder
 
 
@@ -191,7 +191,7 @@ def test_view_save_gif(out, tmp_path, capsys) -> None:
 def test_view_plays_in_a_window_under_xvfb(out, tmp_path) -> None:
     shot = tmp_path / "shot.png"
     run = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1280x1024x24", sys.executable, "-m",
-                          "dloe_sfm.view", str(out), "--frames", "3", "--fps", "30",
+                          "dloe_sfm.stages.view", str(out), "--frames", "3", "--fps", "30",
                           "--screenshot", str(shot)],
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr

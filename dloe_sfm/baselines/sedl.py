@@ -29,8 +29,9 @@ import scipy.sparse as sp
 
 from ..core.capture import Capture
 from ..core.options import Options
-from ..core.solver import build_problem, initialise, normalisation
-from ..core.steps import full_weights, select_candidates, w_step, x_step
+from ..core.problem import build_problem, initialise, normalisation
+from ..core.steps import full_weights, x_step
+from ..core.wstep import select_candidates, w_step
 
 logger = logging.getLogger("dloe_sfm")
 

@@ -6,7 +6,7 @@ import numpy as np
 
 from ..core.capture import Capture
 from ..core.options import Options
-from ..core.solver import initialise
+from ..core.problem import initialise
 
 
 def pseudo_triangulation(capture: Capture, options: Options | None = None) -> np.ndarray:

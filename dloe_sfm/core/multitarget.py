@@ -14,16 +14,19 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from .alternation import Progress
 from .capture import Capture, project
 from .events import cluster_coordinates
 from .options import Options
+from .pipeline import shape_space_graph, solve_single
+from .problem import initialise
 from .result import Result
 from .robust import predicted
-from .solver import initialise, reconstruct, shape_space_graph
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -153,7 +156,13 @@ def reassociate(capture: Capture, assignment: np.ndarray, result: Result) -> np.
     return out
 
 
-def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3) -> Result:
+def reconstruct_subjects(
+    capture: Capture,
+    options: Options,
+    *,
+    rounds: int = 3,
+    progress: Progress | None = None,
+) -> Result:
     """All five steps: a :class:`Result` over the S P columns of the aggregated capture, with
     ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
 
@@ -168,7 +177,7 @@ def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3)
                 capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
     for it in range(rounds):
         merged = aggregate(capture, assignment)
-        result = reconstruct(merged.validate("aggregated subjects"), options)
+        result = solve_single(merged.validate("aggregated subjects"), options, progress)
         if s == 1 or it == rounds - 1:
             break
         new = reassociate(capture, assignment, result)
@@ -177,9 +186,11 @@ def reconstruct_subjects(capture: Capture, options: Options, *, rounds: int = 3)
             break
         logger.info("association: %d image(s) changed, solving again", changed)
         assignment = new
-    result.seconds = time.perf_counter() - started
-    result.subject_id = np.repeat(np.arange(s), p)
-    result.point_id = np.tile(np.arange(p), s)
-    result.assignment = assignment
-    result.solved = result.solved if result.solved is not None else merged
-    return result
+    return replace(
+        result,
+        seconds=time.perf_counter() - started,
+        subject_id=np.repeat(np.arange(s), p),
+        point_id=np.tile(np.arange(p), s),
+        assignment=assignment,
+        solved=result.solved if result.solved is not None else merged,
+    )

@@ -182,7 +182,6 @@ RULES: dict[str, Number | Flag | Choice] = {
     "robust_iterations": _count(0),
     "fix_swaps": Flag(),
     "segment_events": Flag(),
-    "progress": Flag(),
 }
 """The allowed values of every option (``Options`` checks each assignment against them)."""
 
@@ -300,8 +299,6 @@ class Options:
     segment_events: bool = True
     """Find temporally disjoint events first (components of a shape-space W on the initial
     shapes) and solve each on its own."""
-    progress: bool = False
-    """Show a tqdm bar over the outer iterations."""
 
     def ray_weight(self, focal_px: float) -> float:
         """The lambda2 in force for cameras of focal length ``focal_px``."""

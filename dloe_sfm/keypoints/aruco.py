@@ -19,8 +19,8 @@ import numpy as np
 from PIL import Image
 
 from .. import progress
-from ..colmap import list_images
 from ..errors import InputError
+from ..images import list_images
 from .base import MAX_POINTS, Keypoints, Layout, check_count, quoted, shown
 
 logger = logging.getLogger("dloe_sfm")

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..colmap import IMAGE_SUFFIXES, natural_key
 from ..errors import InputError
+from ..images import IMAGE_SUFFIXES, natural_key
 
 if TYPE_CHECKING:
     from ..colmap import Workspace

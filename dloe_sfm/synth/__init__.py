@@ -1,5 +1,13 @@
 """Capture simulation for tests and benchmarks (the paper's motion-capture protocol)."""
 
-from .mocap import MocapSequence, SimulationSettings, load_mocap, ring_cameras, simulate
+from .mocap import (
+    MocapSequence,
+    SimulationSettings,
+    load_mocap,
+    resolve_motion,
+    ring_cameras,
+    simulate,
+)
 
-__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "ring_cameras", "simulate"]
+__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "resolve_motion", "ring_cameras",
+           "simulate"]

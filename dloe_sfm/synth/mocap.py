@@ -3,8 +3,11 @@ unsynchronised cameras.
 
 Four static 1000 x 1000 px cameras (f = 1000, principal point (500, 500)) on a ring around the
 motion centre (yaw +-45 deg, +-135 deg, looking inward). Each stream samples the motion at the same
-rate with start offsets 0, 1/4, 1/2, 3/4 of a period, so no two images share an instant.
-Points are projected without clipping to the image bounds (as in the paper's experiments).
+rate with start offsets 0, 1/4, 1/2, 3/4 of a period, so no two images share an instant; or, as
+field captures do, each at its own rate (``rates``) from a random start (``random_offsets``), the
+motion interpolated at the true instants. Points are projected without clipping to the image
+bounds (as in the paper's experiments), with Gaussian noise or a detector error model
+(``detector``, :mod:`dloe_sfm.synth.detector`).
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from ..core.capture import Capture, project
 from ..core.options import shown
 from ..errors import InputError
 from ..io import read_mocap
+from .detector import DETECTORS, DetectorModel, detect
 
 
 @dataclass(kw_only=True)
@@ -34,6 +38,29 @@ class MocapSequence:
     @property
     def edges(self) -> list[tuple[int, int]]:
         return [(int(j), int(p)) for j, p in enumerate(self.parents) if p >= 0]
+
+
+def symmetric_pairs(parents: np.ndarray) -> np.ndarray:
+    """(K, 2) left/right joint pairs of a skeleton tree: the joints of sibling subtrees of the
+    same shape (two legs under the pelvis, two arms under the chest), matched depth first."""
+    parents = np.asarray(parents)
+    children = [np.flatnonzero(parents == j).tolist() for j in range(parents.size)]
+
+    def shape(j: int) -> tuple:
+        return tuple(sorted(shape(c) for c in children[j]))
+
+    def preorder(j: int) -> list[int]:
+        return [j] + [i for c in sorted(children[j], key=shape) for i in preorder(c)]
+
+    pairs = []
+    for kids in children:
+        by_shape: dict[tuple, list[int]] = {}
+        for c in kids:
+            by_shape.setdefault(shape(c), []).append(c)
+        for twins in by_shape.values():
+            if len(twins) == 2:
+                pairs += zip(preorder(twins[0]), preorder(twins[1]), strict=True)
+    return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
 
 
 def load_mocap(path: Path | str) -> MocapSequence:
@@ -57,15 +84,30 @@ def load_mocap(path: Path | str) -> MocapSequence:
     return MocapSequence(positions=positions[start:], fps=fps, parents=parents, name=path.stem)
 
 
+def resolve_motion(data: Path, name: str) -> Path:
+    """The mocap file of ``name``: a path, ``data/<name>``, ``data/<name>.npz`` (the bundled
+    clips) or ``data/li2018_train_<name>.npz`` (the CMU set's file names)."""
+    for path in (Path(name), data / name, data / f"{name}.npz", data / f"li2018_train_{name}.npz"):
+        if path.is_file():
+            return path
+    raise InputError(f"motion '{name}' not found in {data}")
+
 @dataclass(kw_only=True)
 class SimulationSettings:
     """The protocol's knobs; defaults are the paper's base setting (4 x 30 Hz, no noise)."""
 
     rate: float = 30.0
     """Frames per second of every stream."""
+    rates: tuple[float, ...] | None = None
+    """Frames per second of each stream (``num_streams`` of them), overriding ``rate``."""
+    random_offsets: bool = False
+    """Start each stream at a uniform random time within its first period (else streams start
+    k / num_streams of a period apart)."""
     num_streams: int = 4
     noise: float = 0.0
     """Std of Gaussian 2D noise, pixels."""
+    detector: str | None = None
+    """Name of a bundled detector error model (``openpose``) replacing ``noise``."""
     missing: float = 0.0
     """Fraction of (image, point) observations removed at random."""
     drop: float = 0.0
@@ -99,7 +141,16 @@ class SimulationSettings:
         check("rate", finite["rate"] and 0 < self.rate <= 1000, "in (0, 1000] frames/s")
         check("num_streams", integral["num_streams"] and 1 <= self.num_streams <= 64,
               "an integer in [1, 64]")
+        check("rates", self.rates is None or (
+            isinstance(self.rates, tuple | list) and len(self.rates) == self.num_streams
+            and all(is_finite(r) and 0 < r <= 1000 for r in self.rates)),
+            f"{shown(self.num_streams)} rates (--num-streams) in (0, 1000] frames/s")
+        check("random_offsets", isinstance(self.random_offsets, bool), "true or false")
         check("noise", finite["noise"] and self.noise >= 0, "a finite number >= 0 px")
+        check("detector", self.detector is None or self.detector in DETECTORS,
+              f"one of {', '.join(DETECTORS)}")
+        check("detector", self.detector is None or self.noise == 0,
+              "left unset when --noise is given (the detector model replaces it)")
         check("missing", finite["missing"] and 0 <= self.missing < 1, "in [0, 1)")
         check("drop", finite["drop"] and 0 <= self.drop < 1, "in [0, 1)")
         check("duration", self.duration is None or (finite["duration"] and self.duration > 0),
@@ -159,13 +210,18 @@ def _ring_radius(s: SimulationSettings, points: np.ndarray, centre: np.ndarray) 
 
 
 def _stream_samples(
-    span: float, period: float, s: SimulationSettings, rng: np.random.Generator
+    span: float, fps: float, s: SimulationSettings, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, stream, frame) of streams sampling [0, ``span``] (mocap frames) every ``period``
-    with start offsets k / num_streams of a period, minus ``s.drop`` of the images."""
+    """(t, stream, frame) of streams sampling [0, ``span``] (mocap frames at ``fps``) at
+    ``s.rate`` with start offsets k / num_streams of a period (or each at its own ``s.rates``
+    from a random time in its first period: ``s.random_offsets``), minus ``s.drop`` of the
+    images."""
+    rates = s.rates or (s.rate,) * s.num_streams
     times, streams, frames = [], [], []
     for k in range(s.num_streams):
-        t = k * period / s.num_streams + period * np.arange(int(span / period) + 1)
+        period = fps / rates[k]
+        start = rng.uniform(0, period) if s.random_offsets else k * period / s.num_streams
+        t = start + period * np.arange(int(span / period) + 1)
         t = t[t <= span]
         times.append(t)
         streams.append(np.full(t.size, k))
@@ -195,14 +251,18 @@ def _render(
     rng: np.random.Generator,
     extras: dict,
 ) -> Capture:
-    """Project (N, ..., 3) points into the ring's cameras with noise and missing points."""
+    """Project (N, ..., 3) points into the ring's cameras with noise (or the detector model:
+    confidences, ``outlier_true`` / ``swap_true`` in ``extras``) and missing points."""
     K1, R1, C1 = ring_cameras(
         centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
     )
     K, R, C = K1[stream], R1[stream], C1[stream]
     n = X_true.shape[0]
     x_clean = project(X_true.reshape(n, -1, 3), K, R, C).reshape(*X_true.shape[:-1], 2)
-    x = x_clean + s.noise * rng.standard_normal(x_clean.shape)
+    if s.detector is None:
+        x = x_clean + s.noise * rng.standard_normal(x_clean.shape)
+    else:
+        x = x_clean.copy()
     if s.missing > 0:
         flat = x.reshape(n, -1, 2)
         p = flat.shape[1]
@@ -210,9 +270,16 @@ def _render(
         gone[np.arange(n), rng.integers(0, p, n)] = False  # every image keeps a point
         gone[rng.integers(0, n, p), np.arange(p)] = False  # every point stays seen somewhere
         flat[gone] = np.nan
+    confidence = pairs = None
+    if s.detector is not None:
+        pairs = symmetric_pairs(extras["parents"])
+        x, confidence, truth = detect(DetectorModel.load(s.detector), x_clean, stream, pairs,
+                                      rng, np.isfinite(x).all(axis=-1))
+        extras = {**extras, **truth}
     names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=True)])
     return Capture(
         x=x, K=K, R=R, C=C, stream=stream, frame=frame, image_names=names,
+        confidence=confidence, symmetric_pairs=pairs,
         extras={"X_true": X_true, "x_clean": x_clean, "settings": np.array(str(asdict(s))),
                 **extras},
     )
@@ -223,13 +290,14 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
 
     Images are stored stream by stream in frame order (as videos are), never in time order.
     ``extras``: ``X_true`` (N, P, 3) metres, ``t_true`` (N,) seconds, ``x_clean`` (N, P, 2) pixels
-    before noise and removal.
+    before noise and removal; with ``detector``, ``outlier_true`` (N, P) and ``swap_true``
+    (N, K) of the capture's ``symmetric_pairs``, and the simulated scores as ``confidence``.
     """
     s = settings or SimulationSettings()
     rng = np.random.default_rng(s.seed)
     pos = _window(seq, s)
     centre = pos.reshape(-1, 3).mean(axis=0)
     radius = _ring_radius(s, pos.reshape(-1, 3), centre)
-    t, stream, frame = _stream_samples(pos.shape[0] - 1, seq.fps / s.rate, s, rng)
+    t, stream, frame = _stream_samples(pos.shape[0] - 1, seq.fps, s, rng)
     extras = {"t_true": (t + round(s.start * seq.fps)) / seq.fps, "parents": seq.parents}
     return _render(_interpolate(pos, t), stream, frame, centre, radius, s, rng, extras)

@@ -55,7 +55,7 @@ def simulate_events(
     clips = [_centred(_window(q, s), np.zeros(3)) for q in seqs]
     starts = np.cumsum([0.0] + [c.shape[0] + gap * fps for c in clips[:-1]])
     span = starts[-1] + clips[-1].shape[0] - 1
-    t, stream, frame = _stream_samples(span, fps / s.rate, s, rng)
+    t, stream, frame = _stream_samples(span, fps, s, rng)
     event = np.full(t.size, -1)
     X = np.empty((t.size, clips[0].shape[1], 3))
     for k, (clip, t0) in enumerate(zip(clips, starts, strict=True)):
@@ -92,7 +92,7 @@ def simulate_people(
     clips = [
         _centred(c[:length], np.array([dx, 0.0, 0.0])) for c, dx in zip(clips, offsets, strict=True)
     ]
-    t, stream, frame = _stream_samples(length - 1, fps / s.rate, s, rng)
+    t, stream, frame = _stream_samples(length - 1, fps, s, rng)
     X = np.stack([_interpolate(c, t) for c in clips], axis=1)
     everything = np.concatenate([c.reshape(-1, 3) for c in clips])
     radius = _ring_radius(s, everything, np.zeros(3))
@@ -107,29 +107,6 @@ def simulate_people(
     )
     capture.extras["subject_true"] = slots
     return capture
-
-
-def symmetric_pairs(parents: np.ndarray) -> np.ndarray:
-    """(K, 2) left/right joint pairs of a skeleton tree: the joints of sibling subtrees of the
-    same shape (two legs under the pelvis, two arms under the chest), matched depth first."""
-    parents = np.asarray(parents)
-    children = [np.flatnonzero(parents == j).tolist() for j in range(parents.size)]
-
-    def shape(j: int) -> tuple:
-        return tuple(sorted(shape(c) for c in children[j]))
-
-    def preorder(j: int) -> list[int]:
-        return [j] + [i for c in sorted(children[j], key=shape) for i in preorder(c)]
-
-    pairs = []
-    for kids in children:
-        by_shape: dict[tuple, list[int]] = {}
-        for c in kids:
-            by_shape.setdefault(shape(c), []).append(c)
-        for twins in by_shape.values():
-            if len(twins) == 2:
-                pairs += zip(preorder(twins[0]), preorder(twins[1]), strict=True)
-    return np.array(sorted(pairs), dtype=np.int64).reshape(-1, 2)
 
 
 def add_outliers(

@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-import dloe_sfm.reconstruct as stage
+import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm.colmap import SFM_CAMERA_MODES, find_model, run_sfm
 from dloe_sfm.errors import InputError
 from dloe_sfm.keypoints import FORMATS

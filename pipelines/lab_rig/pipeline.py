@@ -33,11 +33,10 @@ from dloe_sfm.colmap import Workspace, load_workspace
 from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Options
 from dloe_sfm.errors import InputError
-from dloe_sfm.export import error_stats, reprojection_errors
+from dloe_sfm.export import error_stats, export_outputs, reprojection_errors
 from dloe_sfm.io import atomic_path, check_output, save_npz
 from dloe_sfm.keypoints import Keypoints, read_keypoints
 from dloe_sfm.observations import build_capture, select_person
-from dloe_sfm.reconstruct import export_reconstruction
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -133,11 +132,11 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
         result = dloe_sfm.reconstruct(capture, options)
         seconds_dloe = result.seconds
         logger.info("DLOE: %s, %.1f s", result.message, seconds_dloe)
-        export_reconstruction(tmp / "dloe", capture, result, workspace=ws, layout=kp.layout,
-                              plots=plots, report={
-                                  "inputs": {"data": str(data.resolve()), "step": step,
-                                             "min_score": min_score},
-                                  "parameters": options.to_dict()})
+        export_outputs(tmp / "dloe", capture, result, workspace=ws, layout=kp.layout,
+                       plots=plots, report={
+                           "inputs": {"data": str(data.resolve()), "step": step,
+                                      "min_score": min_score},
+                           "parameters": options.to_dict()})
         table = compare(ws, capture, result, cameras, frames, dets, kept, min_score, tmp)
         table["seconds"] = {"dloe_solve": seconds_dloe, "pipeline": time.perf_counter() - tic}
         with open(tmp / "comparison.json", "w") as f:

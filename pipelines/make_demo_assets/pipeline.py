@@ -26,6 +26,8 @@ import cv2
 import numpy as np
 import pycolmap
 
+from dloe_sfm.colmap import find_model, run_sfm
+
 logger = logging.getLogger("dloe_sfm")
 
 WIDTH, HEIGHT = 640, 480
@@ -63,10 +65,6 @@ class RenderCamera:
     cx: float = WIDTH / 2
     cy: float = HEIGHT / 2
     k: float = RADIAL_K
-
-    @property
-    def params(self) -> str:
-        return f"{self.f},{self.cx},{self.cy},{self.k}"
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (..., 3) -> COLMAP pixel coordinates (..., 2); NaN behind the camera."""
@@ -362,42 +360,18 @@ def detect_markers(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- SfM
 
 
-def run_sfm(images: Path, names: list[str], cams: list[RenderCamera], work: Path, seed: int
-            ) -> pycolmap.Reconstruction:
-    """Features (one COLMAP camera per camera folder, known intrinsics), exhaustive matching and
-    global mapping with the intrinsics held fixed; returns the largest model."""
-    database = work / "database.db"
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = 2
-    extraction.sift.max_num_features = MAX_FEATURES
-    # Upsampled first octave: 2-3x the matches across the 60 degree baselines and a third of the
-    # rotation error of first_octave = 0, for 2-3x the extraction and matching time.
-    extraction.sift.first_octave = -1
-    extraction.sift.estimate_affine_shape = True  # the cameras are 60 degrees apart
-    for c, cam in enumerate(cams):
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = "SIMPLE_RADIAL"
-        reader.camera_params = cam.params
-        pycolmap.extract_features(
-            database, images, image_names=[n for n in names if n.startswith(f"cam{c}/")],
-            camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-            extraction_options=extraction, device=pycolmap.Device.cpu,
-        )
-    logger.info("features extracted")
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = 2
-    pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
-    logger.info("matched")
-    options = pycolmap.GlobalPipelineOptions()
-    options.num_threads = 2
-    options.random_seed = seed
-    options.mapper.random_seed = seed
-    options.mapper.bundle_adjustment.refine_focal_length = False
-    options.mapper.bundle_adjustment.refine_extra_params = False
-    models = pycolmap.global_mapping(database, images, work / "sparse", options=options)
-    if not models:
-        raise RuntimeError("global mapping produced no model")
-    return max(models.values(), key=lambda rec: rec.num_reg_images())
+def sfm_model(images: Path, work: Path, seed: int) -> pycolmap.Reconstruction:
+    """``dloe_sfm.colmap.run_sfm`` into ``work/sfm``: one COLMAP camera per camera folder with the
+    true intrinsics held fixed, exhaustive matching, global mapping; returns the largest model."""
+    workspace = run_sfm(
+        images, work / "sfm", camera_mode="per_folder", camera_model="SIMPLE_RADIAL",
+        camera_params=(FOCAL, WIDTH / 2, HEIGHT / 2, RADIAL_K), mapper="global",
+        max_num_features=MAX_FEATURES,
+        # Upsampled first octave: 2-3x the matches across the 60 degree baselines and a third of
+        # the rotation error of first_octave = 0, for 2-3x the extraction and matching time.
+        first_octave=-1, num_threads=2, seed=seed,
+    )
+    return pycolmap.Reconstruction(find_model(workspace))
 
 
 def align_to_truth(rec: pycolmap.Reconstruction, names: list[str], centres: np.ndarray
@@ -520,7 +494,7 @@ def main(out: Path, *, seed: int = 0, overwrite: bool = False) -> Path:
         truth = render_frames(images, seed)
         names = [str(n) for n in truth["image_names"]]
         rendered = time.perf_counter()
-        rec = run_sfm(images, names, cams, Path(tmp), seed)
+        rec = sfm_model(images, Path(tmp), seed)
         mapped = time.perf_counter()
 
         C_all = np.stack([cams[s].C for s in truth["stream"]])

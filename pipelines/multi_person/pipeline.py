@@ -4,8 +4,9 @@ Each case is simulated with ``dloe_sfm.synth.scenarios`` (CMU mocap, a ring of 4
 cameras), written as a COLMAP workspace (the ring cameras, one posed image per capture image,
 ``cam0/00012.jpg``, no image files) with one OpenPose JSON file per image (every person of the
 image, in the simulator's shuffled order) and a layout file for the CMU skeleton, reconstructed
-by the real stage (``dloe_sfm.reconstruct.main``, like ``dloe-sfm reconstruct``), and scored from
-the stage's outputs (trajectories.npz, sequence.csv, report.json) against the simulator's truth:
+by the real stage (``dloe_sfm.stages.reconstruct.main``, like ``dloe-sfm reconstruct``), and
+scored from the stage's outputs (trajectories.npz, sequence.csv, report.json) against the
+simulator's truth:
 
 1. people: two people 2 m apart; images whose detections all go to the right person (best
    global permutation of subject ids), every person's mean 3D error;
@@ -32,20 +33,20 @@ from pathlib import Path
 
 import numpy as np
 
-from dloe_sfm.benchmark import machine_info, resolve_motion
+from dloe_sfm.benchmark import machine_info
 from dloe_sfm.colmap import CameraSpec, ImageSpec, write_model
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.errors import InputError
 from dloe_sfm.io import atomic_path, check_output
 from dloe_sfm.keypoints import Layout
-from dloe_sfm.reconstruct import main as reconstruct_workspace
-from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+from dloe_sfm.stages.reconstruct import main as reconstruct_workspace
+from dloe_sfm.synth import SimulationSettings, load_mocap, resolve_motion, simulate
+from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
     add_outliers,
     simulate_events,
     simulate_people,
     swap_symmetric,
-    symmetric_pairs,
 )
 
 logger = logging.getLogger("dloe_sfm")

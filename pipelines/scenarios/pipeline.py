@@ -28,18 +28,18 @@ from pathlib import Path
 
 import numpy as np
 
-from dloe_sfm.benchmark import machine_info, resolve_motion
+from dloe_sfm.benchmark import machine_info
 from dloe_sfm.core.capture import Capture
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import best_permutation, swaps_undone
-from dloe_sfm.synth import MocapSequence, SimulationSettings, load_mocap
+from dloe_sfm.synth import MocapSequence, SimulationSettings, load_mocap, resolve_motion
+from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
     add_outliers,
     simulate_events,
     simulate_people,
     swap_symmetric,
-    symmetric_pairs,
 )
 
 EVENT_MIXES = [

@@ -19,13 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dloe_sfm.benchmark import resolve_motion
 from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
-from dloe_sfm.core.solver import initialise, oracle_reconstruct, reconstruct
-from dloe_sfm.evaluate import point_errors
-from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.evaluate import oracle_reconstruct, point_errors
+from dloe_sfm.synth import SimulationSettings, load_mocap, resolve_motion, simulate
 
 MOTIONS = [
     "walking_1",

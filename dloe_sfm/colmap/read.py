@@ -1,4 +1,4 @@
-"""The one module that touches pycolmap: read a COLMAP workspace, cameras, poses; write models.
+"""Read a COLMAP workspace: find its model, check it (binary layout, cameras, poses), ``Workspace``.
 
 Pixel convention here is COLMAP's: the centre of the top-left pixel is (0.5, 0.5). Keypoint
 adapters use (0, 0) and add 0.5 before calling anything in this module.
@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import functools
 import logging
-import re
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -17,30 +16,17 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .core.capture import ROTATION_TOLERANCE, nearest_rotation, rotation_deviation
-from .errors import InputError
-from .io import atomic_path
+from ..core.capture import ROTATION_TOLERANCE, nearest_rotation, rotation_deviation
+from ..errors import InputError
+from ..images import list_images, natural_key
+from .common import quiet_colmap
 
 logger = logging.getLogger("dloe_sfm")
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", ".ppm", ".pgm")
 MODEL_FILES = ("cameras", "images", "points3D")
 # cam_from_img is iterative for distorted models; beyond the valid domain it returns a wrong
 # point without complaint, so every result is checked by projecting it back (pixels).
 UNDISTORT_TOLERANCE = 1e-2
-
-
-def natural_key(name: str) -> tuple:
-    """Sort key that orders embedded numbers numerically ('f9' < 'f10')."""
-    return tuple(int(s) if s.isdigit() else s for s in re.split(r"(\d+)", name))
-
-
-def quiet_colmap() -> None:
-    """COLMAP's own (glog) logging: errors only, unless the package logger is at DEBUG."""
-    verbose = logger.isEnabledFor(logging.DEBUG)
-    level = pycolmap.logging.Level.INFO if verbose else pycolmap.logging.Level.ERROR
-    pycolmap.logging.minloglevel = int(level)
-    pycolmap.logging.verbose_level = 1 if verbose else 0
 
 
 def has_model(folder: Path) -> bool:
@@ -388,16 +374,6 @@ def _find_image_dir(root: Path, model_dir: Path) -> Path | None:
     return next((d for d in candidates if d.is_dir()), None)
 
 
-def list_images(image_dir: Path) -> list[str]:
-    """Image files below ``image_dir`` as POSIX paths relative to it, in natural order."""
-    names = [
-        p.relative_to(image_dir).as_posix()
-        for p in image_dir.rglob("*")
-        if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
-    ]
-    return sorted(names, key=natural_key)
-
-
 def load_workspace(path: Path | str, *, image_dir: Path | str | None = None) -> Workspace:
     """Read a COLMAP workspace (or a model folder) without modifying it.
 
@@ -442,222 +418,3 @@ def load_workspace(path: Path | str, *, image_dir: Path | str | None = None) -> 
 def _some(names: Sequence[str], limit: int = 5) -> str:
     shown = ", ".join(f"'{n}'" for n in names[:limit])
     return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
-
-
-@dataclass(kw_only=True)
-class CameraSpec:
-    """A camera as plain values: COLMAP model name, size in pixels, params in COLMAP's order
-    and pixel convention (e.g. OPENCV: fx, fy, cx, cy, k1, k2, p1, p2)."""
-
-    model: str
-    width: int
-    height: int
-    params: np.ndarray
-
-
-@dataclass(kw_only=True)
-class ImageSpec:
-    """A posed image as plain values: ``camera`` indexes the camera list; R (3, 3)
-    world-to-camera, C (3,) centre."""
-
-    name: str
-    camera: int
-    R: np.ndarray
-    C: np.ndarray
-
-
-def _make_camera(i: int, spec: CameraSpec) -> pycolmap.Camera:
-    if spec.model not in pycolmap.CameraModelId.__members__ or spec.model == "INVALID":
-        raise InputError(f"camera {i}: unknown COLMAP camera model '{spec.model}'")
-    params = np.asarray(spec.params, dtype=np.float64)
-    if not np.isfinite(params).all():
-        raise InputError(f"camera {i}: params are not finite")
-    cam = pycolmap.Camera(
-        model=spec.model, width=int(spec.width), height=int(spec.height),
-        params=params.tolist(), camera_id=i + 1,
-    )
-    if not cam.verify_params():
-        raise InputError(
-            f"camera {i}: model {spec.model} needs params ({cam.params_info}), got {params.size}"
-        )
-    return cam
-
-
-def write_model(
-    path: Path | str,
-    cameras: Sequence[CameraSpec],
-    images: Sequence[ImageSpec],
-    *,
-    text: bool = False,
-    overwrite: bool = False,
-) -> Path:
-    """Write a COLMAP model (binary, or text) of posed images without 3D points; returns ``path``.
-
-    Camera ``i`` gets COLMAP camera id ``i + 1`` (and a rig of its own); each image a frame of
-    its own. A folder that is not empty is only replaced (whole) with ``overwrite=True``.
-    """
-    path = Path(path)
-    if path.is_dir() and any(path.iterdir()) and not overwrite:
-        raise InputError(f"{path}: folder is not empty (pass overwrite=True to replace it)")
-    quiet_colmap()
-    rec = pycolmap.Reconstruction()
-    for i, spec in enumerate(cameras):
-        rec.add_camera_with_trivial_rig(_make_camera(i, spec))
-    names = set()
-    for j, im in enumerate(images):
-        if im.name in names:
-            raise InputError(f"image '{im.name}': name used twice")
-        names.add(im.name)
-        if not 0 <= im.camera < len(cameras):
-            raise InputError(f"image '{im.name}': camera index {im.camera} out of range")
-        R = np.asarray(im.R, dtype=np.float64)
-        C = np.asarray(im.C, dtype=np.float64)
-        if not (np.isfinite(R).all() and np.isfinite(C).all()):
-            raise InputError(f"image '{im.name}': pose is not finite")
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or abs(np.linalg.det(R) - 1) > 1e-6:
-            raise InputError(f"image '{im.name}': R is not a rotation matrix")
-        cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ C)
-        image = pycolmap.Image(name=im.name, camera_id=im.camera + 1, image_id=j + 1)
-        rec.add_image_with_trivial_frame(image, cam_from_world)
-    with atomic_path(path, mark=True) as tmp:
-        tmp.mkdir()
-        if text:
-            rec.write_text(str(tmp))
-        else:
-            rec.write(str(tmp))
-    logger.info("%s: wrote a COLMAP model, %d cameras, %d images", path, len(cameras), len(images))
-    return path
-
-
-def _check_camera_model(name: str) -> None:
-    if name not in pycolmap.CameraModelId.__members__ or name == "INVALID":
-        raise InputError(f"unknown COLMAP camera model '{name}'")
-
-
-def synthetic_workspace(
-    path: Path | str,
-    *,
-    num_cameras: int = 3,
-    num_frames: int = 4,
-    cameras_per_rig: int = 1,
-    num_points3D: int = 50,
-    camera_model: str = "SIMPLE_RADIAL",
-    camera_params: Sequence[float] | None = None,
-    seed: int = 0,
-) -> Path:
-    """A small COLMAP workspace from ``pycolmap.synthesize_dataset`` at ``path/sparse/0``.
-
-    ``num_cameras`` rigs of ``cameras_per_rig`` cameras, each with ``num_frames`` posed images
-    named ``cameraNNNNNN_frameNNNNNN.png`` (1024 x 768). Seeded and deterministic. Returns ``path``.
-    """
-    path = Path(path)
-    model_dir = path / "sparse" / "0"
-    if has_model(model_dir):
-        raise InputError(f"{model_dir}: a COLMAP model is already there")
-    _check_camera_model(camera_model)
-    quiet_colmap()
-    options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs = num_cameras
-    options.num_cameras_per_rig = cameras_per_rig
-    options.num_frames_per_rig = num_frames
-    options.num_points3D = num_points3D
-    options.camera_model_id = pycolmap.CameraModelId.__members__[camera_model]
-    if camera_params is not None:
-        options.camera_params = [float(v) for v in camera_params]
-    elif camera_model != "SIMPLE_RADIAL":  # options' default params are SIMPLE_RADIAL's
-        options.camera_params = pycolmap.Camera.create_from_model_name(
-            0, camera_model, 1280.0, options.camera_width, options.camera_height
-        ).params.tolist()
-    pycolmap.set_random_seed(seed)
-    rec = pycolmap.synthesize_dataset(options)
-    with atomic_path(model_dir) as tmp:
-        tmp.mkdir()
-        rec.write(str(tmp))
-    return path
-
-
-# --- Structure from motion on a folder of images (pipelines/crowd_photos); owner: output side ---
-
-SFM_CAMERA_MODES = ("per_folder", "per_image", "single")
-
-
-def run_sfm(
-    image_dir: Path | str,
-    workspace_dir: Path | str,
-    *,
-    camera_mode: str | None = None,
-    camera_model: str = "SIMPLE_RADIAL",
-    camera_params: Sequence[float] | None = None,
-    mapper: str = "global",
-    max_num_features: int = 4096,
-    overwrite: bool = False,
-) -> Path:
-    """COLMAP SfM (SIFT, exhaustive matching, global or incremental mapping) of ``image_dir``
-    into a new workspace ``workspace_dir`` (``database.db``, ``sparse/<k>``, ``images`` -> a link
-    to ``image_dir``); returns ``workspace_dir``.
-
-    ``camera_mode``: ``per_folder`` (one camera per sub-folder, i.e. per video stream; the
-    default when images sit in sub-folders), ``per_image`` (crowd photos; the default otherwise)
-    or ``single``. ``camera_params`` (COLMAP order for ``camera_model``) fixes known intrinsics:
-    they are then not refined (refining them cost 1-5 px of reprojection error on test scenes).
-    The workspace is built in a temporary sibling and renamed when complete.
-    """
-    image_dir = Path(image_dir).resolve()
-    workspace_dir = Path(workspace_dir)
-    if not image_dir.is_dir():
-        raise InputError(f"{image_dir}: no such image folder")
-    names = list_images(image_dir)
-    if len(names) < 2:
-        raise InputError(f"{image_dir}: SfM needs at least 2 images, found {len(names)}")
-    if workspace_dir.exists() and not overwrite:
-        raise InputError(f"{workspace_dir}: workspace exists (pass overwrite=True to replace it)")
-    if camera_mode is None:
-        camera_mode = "per_folder" if any("/" in n for n in names) else "per_image"
-    if camera_mode not in SFM_CAMERA_MODES:
-        raise InputError(f"camera_mode '{camera_mode}': expected one of {SFM_CAMERA_MODES}")
-    if mapper not in ("global", "incremental"):
-        raise InputError(f"mapper '{mapper}': expected 'global' or 'incremental'")
-    _check_camera_model(camera_model)
-    quiet_colmap()
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = camera_model
-    if camera_params is not None:
-        reader.camera_params = ",".join(repr(float(v)) for v in camera_params)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.sift.max_num_features = int(max_num_features)
-    extraction.sift.first_octave = 0
-    extraction.sift.estimate_affine_shape = True  # wide baselines barely matched without it
-    fixed = camera_params is not None
-    with atomic_path(workspace_dir) as tmp:
-        tmp.mkdir()
-        database = tmp / "database.db"
-        logger.info("SfM: extracting features of %d images in %s (%s cameras)", len(names),
-                    image_dir, camera_mode)
-        pycolmap.extract_features(
-            database, image_dir, image_names=names,
-            camera_mode=pycolmap.CameraMode.__members__[camera_mode.upper()],
-            reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
-        )
-        logger.info("SfM: exhaustive matching")
-        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
-        (tmp / "sparse").mkdir()
-        logger.info("SfM: %s mapping", mapper)
-        if mapper == "global":
-            options = pycolmap.GlobalPipelineOptions()
-            options.mapper.bundle_adjustment.refine_focal_length = not fixed
-            options.mapper.bundle_adjustment.refine_extra_params = not fixed
-            models = pycolmap.global_mapping(database, image_dir, tmp / "sparse", options=options)
-        else:
-            options = pycolmap.IncrementalPipelineOptions()
-            options.ba_refine_focal_length = not fixed
-            options.ba_refine_extra_params = not fixed
-            options.mapper.abs_pose_refine_focal_length = not fixed
-            options.mapper.abs_pose_refine_extra_params = not fixed
-            models = pycolmap.incremental_mapping(database, image_dir, tmp / "sparse",
-                                                  options=options)
-        if not models:
-            raise InputError(f"{image_dir}: COLMAP could not register the images (no model)")
-        (tmp / "images").symlink_to(image_dir, target_is_directory=True)
-        sizes = {k: rec.num_reg_images() for k, rec in models.items()}
-        logger.info("SfM: %d model(s), registered images %s of %d", len(models), sizes, len(names))
-    return workspace_dir

@@ -14,15 +14,16 @@ import math
 from dataclasses import fields
 from pathlib import Path
 
-from .errors import InputError
-from .io import check_not_input, save_capture
-from .synth import SimulationSettings, load_mocap, simulate
-from .synth.scenarios import (
+from ..errors import InputError
+from ..io import check_not_input, save_capture
+from ..synth import SimulationSettings, load_mocap, simulate
+from ..synth.detector import DETECTORS
+from ..synth.mocap import symmetric_pairs
+from ..synth.scenarios import (
     add_outliers,
     simulate_events,
     simulate_people,
     swap_symmetric,
-    symmetric_pairs,
 )
 
 logger = logging.getLogger("dloe_sfm")
@@ -92,6 +93,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         help="fraction of observations moved 20-100 px (wrong detections)")
     parser.add_argument("--swaps", type=float, default=0.0,
                         help="fraction of left/right pairs swapped in each image")
+    special = {
+        "rates": {"type": float, "nargs": "+", "metavar": "FPS",
+                  "help": "frames per second of each stream (one per --num-streams, e.g. "
+                          "24 25 29.97 30), overriding --rate"},
+        "random_offsets": {"action": "store_true",
+                           "help": "start each stream at a random time within its first period"},
+        "detector": {"metavar": "NAME",
+                     "help": "detector error model replacing --noise, calibrated on real "
+                             f"detections ({', '.join(DETECTORS)})"},
+    }
     defaults = SimulationSettings()
     for f in fields(SimulationSettings):
         value = getattr(defaults, f.name)
@@ -99,16 +110,16 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
         parser.add_argument(
             f"--{f.name.replace('_', '-')}",
             dest=f.name,
-            type=kind,
             default=value,
-            help=f"default: {value}",
+            **special.get(f.name, {"type": kind, "help": f"default: {value}"}),
         )
 
 
 def run(args: argparse.Namespace) -> int:
-    settings = SimulationSettings(
-        **{f.name: getattr(args, f.name) for f in fields(SimulationSettings)}
-    )
+    values = {f.name: getattr(args, f.name) for f in fields(SimulationSettings)}
+    if values["rates"] is not None:
+        values["rates"] = tuple(values["rates"])
+    settings = SimulationSettings(**values)
     main(args.mocap, args.out, settings, mix=args.mix, gap=args.gap, spacing=args.spacing,
          outliers=args.outliers, swaps=args.swaps)
     return 0
@@ -117,6 +128,6 @@ def run(args: argparse.Namespace) -> int:
 if __name__ == "__main__":
     import sys
 
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

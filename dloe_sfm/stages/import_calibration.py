@@ -6,8 +6,8 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
-from .calibration import FORMATS, import_calibration
-from .io import check_output
+from ..calibration import FORMATS, import_calibration
+from ..io import check_output
 
 
 def main(
@@ -54,6 +54,6 @@ def run(args: argparse.Namespace) -> int:
 if __name__ == "__main__":
     import sys
 
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

@@ -8,8 +8,8 @@ import logging
 import time
 from pathlib import Path
 
-from .errors import InputError
-from .evaluate import evaluate_output
+from ..errors import InputError
+from ..evaluate import evaluate_output
 from .reconstruct import main as reconstruct_main
 
 logger = logging.getLogger("dloe_sfm")
@@ -73,6 +73,6 @@ def run(args: argparse.Namespace) -> int:
 if __name__ == "__main__":
     import sys
 
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

@@ -7,23 +7,20 @@ import logging
 import math
 import sys
 import time
-import types
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__, progress
-from .colmap import Workspace, load_workspace
-from .config import load_options
-from .core.capture import Capture
-from .core.options import Options
-from .core.result import Result
-from .core.solver import reconstruct
-from .errors import InputError
-from .io import atomic_path, check_output
-from .keypoints import FORMATS, Layout, load_layout, read_keypoints
-from .observations import PERSON_MODES, build_capture, observed_layout
-from .resources import check_solve_memory
+from .. import __version__, progress
+from ..colmap import load_workspace
+from ..config import load_options
+from ..core.options import Options
+from ..core.solver import reconstruct
+from ..errors import InputError
+from ..io import check_output
+from ..keypoints import FORMATS, Layout, load_layout, read_keypoints
+from ..observations import PERSON_MODES, build_capture, observed_layout
+from ..resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -52,103 +49,6 @@ def _positive_rate(value: str) -> float:
     if not (math.isfinite(rate) and rate > 0):
         raise argparse.ArgumentTypeError(f"must be a positive number, got {value!r}")
     return rate
-
-
-def write_plots(folder: Path, capture: Capture, result: Result, *,
-                workspace: Workspace | None = None,
-                edges: np.ndarray | None = None, point_names: list[str] | None = None,
-                num_overlays: int = 4) -> list[Path]:
-    """Sequence, affinity, event and trajectory plots, the animation (``animation.gif``, with
-    the workspace's static points), plus reprojection overlays on ``num_overlays`` images
-    spread over the estimated order when the workspace's image files exist. ``edges`` (E, 2)
-    and ``point_names`` (P,) are the layout's (point ids); with several subjects, skeletons
-    and trajectories are drawn per subject."""
-    from . import viz  # matplotlib / cv2 only when plotting
-    from .export import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
-
-    capture = solved_capture(capture, result)
-    subject_id, point_id = column_ids(result)
-    subjects = None if result.subject_id is None else subject_id
-    edges = column_edges(edges if edges is not None else [], subject_id, point_id)
-    folder.mkdir(parents=True, exist_ok=True)
-    written = [
-        viz.plot_sequence(result, capture, folder / "sequence.png"),
-        viz.plot_affinity(result, folder / "affinity.png"),
-        viz.plot_events(result, folder / "events.png"),
-        viz.plot_trajectories(result.X, result.order, folder / "trajectories.png",
-                              point_names=None if point_names is None else
-                              [point_names[j] for j in point_id],
-                              observed=capture.visible, subject_id=subjects),
-        viz.animate(result.X, result.order, folder / "animation.gif",
-                    image_names=capture.image_names, events=result.events, edges=edges,
-                    colors=point_colors(int(point_id.max()) + 1)[point_id], subject_id=subjects,
-                    observed=capture.visible,
-                    static_xyz=None if workspace is None else workspace.static_xyz,
-                    static_rgb=None if workspace is None else workspace.static_rgb,
-                    up=-capture.R[:, 1].mean(axis=0)),  # image up is -y of the camera
-    ]
-    if workspace is None or workspace.image_dir is None or num_overlays <= 0:
-        return written
-
-    rays = capture.rays()
-    picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
-    for i in dict.fromkeys(picks.tolist()):
-        name = str(capture.image_names[i])
-        image_path = Path(workspace.image_dir) / name
-        if not image_path.is_file():
-            logger.debug("no image file %s: no overlay", image_path)
-            continue
-        # any point on the observed ray projects to the observed (distorted) pixel
-        observed = np.full((capture.num_points, 2), np.nan)
-        vis = capture.visible[i]
-        if vis.any():
-            observed[vis] = workspace.project(name, capture.C[i] + rays[i, vis])
-        reprojected = workspace.project(name, result.X[i])
-        rank = int(result.rank[i])
-        written.append(viz.plot_reprojection(
-            image_path, observed, reprojected, edges,
-            folder / "overlays" / f"{frame_file_stem(rank, name, capture.num_images)}.png",
-            title=f"{name} (rank {rank})", subject_id=subjects,
-        ))
-    return written
-
-
-def export_reconstruction(out: Path, capture: Capture, result: Result, *,
-                          workspace: Workspace | None = None, layout: Layout | None = None,
-                          report: dict | None = None, overwrite: bool = False,
-                          plots: bool = True, export_rate: float | None = None) -> dict:
-    """Section-4 outputs (and ``plots/`` unless ``plots=False``) of a solved capture, written
-    atomically to ``out``; static points and overlays come from ``workspace`` when given.
-    Returns the report written to ``report.json``."""
-    from .export import write_outputs  # open3d: 1 s to import, ``dloe-sfm`` loads every stage
-
-    target = check_output(out, overwrite=overwrite, protected=[] if workspace is None else
-                          [workspace.model_dir, workspace.image_dir])
-    tic = time.perf_counter()
-    with atomic_path(target, mark=True) as tmp:
-        tmp.mkdir()
-        summary = write_outputs(
-            tmp, capture, result, layout=layout, report=report,
-            static_xyz=None if workspace is None else workspace.static_xyz,
-            static_rgb=None if workspace is None else workspace.static_rgb,
-            export_rate=export_rate,
-        )
-        if plots:
-            write_plots(tmp / "plots", capture, result, workspace=workspace,
-                        edges=None if layout is None else
-                        np.asarray(layout.edges, dtype=np.int64).reshape(-1, 2),
-                        point_names=None if layout is None else list(layout.point_names))
-    logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz / .trc / .c3d, "
-                "report.json%s)",
-                time.perf_counter() - tic, out, ", plots/" if plots else "")
-    error = summary["reprojection_error_px"]["all"]
-    if error["mean"] is not None:
-        logger.info("mean reprojection error %.3f px (median %.3f) over %d observations",
-                    error["mean"], error["median"], error["count"])
-    logger.info("%d subject(s); robust loss: %d observation(s) down-weighted, %d left/right "
-                "swap(s) fixed (report.json)", summary["subjects"],
-                summary["downweighted"]["count"], summary["swaps_fixed"]["count"])
-    return summary
 
 
 def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
@@ -198,7 +98,8 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
 
     tic = time.perf_counter()
     check_solve_memory(capture, options, workspace)
-    result = reconstruct(capture, options)
+    with progress.solver_bar() as on_sweep:
+        result = reconstruct(capture, options, progress=on_sweep)
     timings["solve"] = time.perf_counter() - tic
     logger.info("DLOE: %s (%d iterations, %.2f s, %d event(s))", result.message, result.nit,
                 result.seconds, np.unique(result.events).size)
@@ -222,8 +123,10 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
         "timings": timings,
     }
     layout = observed_layout(kp.layout, capture.extras["unobserved_points"])
-    export_reconstruction(out, capture, result, workspace=ws, layout=layout, report=report,
-                          overwrite=overwrite, plots=plots, export_rate=export_rate)
+    from ..export import export_outputs  # open3d: 1 s to import, only when writing
+
+    export_outputs(out, capture, result, workspace=ws, layout=layout, report=report,
+                   overwrite=overwrite, plots=plots, export_rate=export_rate)
     return out
 
 
@@ -274,25 +177,13 @@ def run(args: argparse.Namespace) -> int:
                stream_pattern=args.stream_pattern, min_score=args.min_score, person=args.person,
                layout=args.layout, aruco_dict=args.aruco_dict, config=args.config,
                overrides=args.overrides,
-               options=Options(progress=progress.enabled()),
+               options=Options(),
                overwrite=args.overwrite, plots=args.plots, export_rate=args.export_rate)
     print(f"reconstruction written to {out}")
     return 0
 
 
-class _CallableStage(types.ModuleType):
-    """Importing this stage module rebinds the package attribute ``dloe_sfm.reconstruct`` from
-    the solver function to the module (Python sets submodules on their parent); calling the
-    module runs the solver, so ``dloe_sfm.reconstruct(capture, options)`` works either way."""
-
-    def __call__(self, capture: Capture, options: Options | None = None) -> Result:
-        return reconstruct(capture, options)
-
-
-sys.modules[__name__].__class__ = _CallableStage
-
-
 if __name__ == "__main__":
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

@@ -6,12 +6,12 @@ import argparse
 import logging
 from pathlib import Path
 
-from . import progress
-from .config import load_options
-from .core.options import Options
-from .core.solver import reconstruct
-from .io import check_output, load_capture, save_result
-from .resources import check_solve_memory
+from .. import progress
+from ..config import load_options
+from ..core.options import Options
+from ..core.solver import reconstruct
+from ..io import check_output, load_capture, save_result
+from ..resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -42,7 +42,8 @@ def main(
         len(set(cap.stream_ids.tolist())),
     )
     check_solve_memory(cap, options, capture)
-    result = reconstruct(cap, options)
+    with progress.solver_bar() as on_sweep:
+        result = reconstruct(cap, options, progress=on_sweep)
     save_result(target, result)
     logger.info(
         "%s: %s after %d iterations, %.2f s, %d event(s)",
@@ -74,7 +75,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    base = Options(progress=progress.enabled())
+    base = Options()
     main(args.capture, args.out, config=args.config, overrides=args.overrides, options=base,
          overwrite=args.overwrite)
     return 0
@@ -83,6 +84,6 @@ def run(args: argparse.Namespace) -> int:
 if __name__ == "__main__":
     import sys
 
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .io import NpzReader, atomic_path, check_output
+from ..columns import point_colors
+from ..errors import InputError
+from ..io import NpzReader, atomic_path, check_output
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -49,8 +50,6 @@ def load_sequence(out: Path) -> Sequence:
     """Read ``out/trajectories.npz`` and ``out/static.ply`` (docs/interfaces.md, "Reconstruct
     outputs")."""
     import open3d as o3d
-
-    from .export import point_colors
 
     out = Path(out)
     if not out.is_dir():
@@ -92,7 +91,7 @@ def load_sequence(out: Path) -> Sequence:
 
 def write_gif(seq: Sequence, path: Path, *, fps: float, up: str) -> Path:
     """The animation of ``viz.animate`` from a read-back output."""
-    from . import viz
+    from .. import viz
 
     return viz.animate(seq.X, seq.order, path, image_names=seq.image_names, events=seq.events,
                        edges=seq.edges, colors=seq.colors, subject_id=seq.subject_id,
@@ -158,7 +157,7 @@ class _Player:
                  screenshot: Path | None):
         import open3d as o3d
 
-        from . import viz
+        from .. import viz
 
         self.o3d, self.vis, self.seq = o3d, vis, seq
         self.period, self.max_frames, self.screenshot = 1.0 / fps, max_frames, screenshot
@@ -196,7 +195,7 @@ class _Player:
     def add_geometry(self, up: np.ndarray) -> None:
         """The points' cube (``viz.scene_box``, light grey: the view fits it), the first
         frame, static points in a cube three times as large, the view."""
-        from . import viz
+        from .. import viz
 
         o3d, seq, vis = self.o3d, self.seq, self.vis
         cube = o3d.geometry.LineSet.create_from_axis_aligned_bounding_box(
@@ -340,6 +339,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    from .cli import run_stage
+    from ..cli import run_stage
 
     sys.exit(run_stage(__name__))

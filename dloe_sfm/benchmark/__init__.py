@@ -1,0 +1,149 @@
+"""Benchmark DLOE against the paper's baselines on simulated mocap captures (the paper's protocol).
+
+Suites (``dloe-sfm benchmark SUITE``, :func:`main`):
+
+- ``noise``, ``rate``, ``missing``, ``density``: mean 3D error (mm) of every method while one
+  factor of the capture varies (2D noise, frame rate per stream, missing points, dropped frames).
+- ``kendall``: |Kendall tau| of the spectral / MDS / SHP orders from Euclidean and arc distances,
+  on the pseudo-triangulated and on the DLOE shapes (the paper's Table 1).
+- ``ablation``: DLOE without the S, T or R term at moderate and high noise.
+- ``runtime``: time per iteration and per step, and peak memory, against the number of images.
+
+Every suite writes ``results.json`` (every run, settings, seeds, machine, git commit),
+``table.md`` and ``<suite>.png`` to ``outputs/benchmark/<suite>/``.
+
+Modules: :mod:`.suites` (what each suite runs), :mod:`.jobs` (the runs, in worker processes),
+:mod:`.report` (summaries, tables, plots, machine facts).
+"""
+
+from __future__ import annotations
+
+import importlib.resources
+import logging
+import sys
+import time
+from pathlib import Path
+
+from ..core.options import Options
+from ..errors import InputError
+from ..synth import SimulationSettings, resolve_motion
+from .jobs import kendall_job, run_jobs, runtime_job, sweep_job
+from .report import (
+    fit_exponent,
+    kendall_table,
+    machine_info,
+    plot_bars,
+    plot_kendall,
+    plot_runtime,
+    plot_sweep,
+    runtime_table,
+    summarise_kendall,
+    summarise_runtime,
+    summarise_sweep,
+    sweep_table,
+    write_results,
+)
+from .suites import (
+    ABLATION_NOISE,
+    KENDALL_MOTIONS,
+    METHODS,
+    MOTIONS,
+    QUICK_MOTIONS,
+    RUNTIME_MOTION,
+    RUNTIME_SIZES,
+    SUITES,
+    SWEEPS,
+    ablation_variants,
+    simulation_settings,
+)
+
+__all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "METHODS", "SUITES", "InputError", "fit_exponent",
+           "machine_info", "main"]
+
+logger = logging.getLogger("dloe_sfm")
+
+# the bundled clips (walking_1, jumping_1, basketball_signal_1, package data) run the --quick
+# grids and any suite restricted to them with --motions; the full suites take --data (the CMU set)
+DEFAULT_DATA = Path(str(importlib.resources.files("dloe_sfm") / "assets" / "mocap"))
+DEFAULT_OUT = Path("outputs") / "benchmark"
+
+
+def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick: bool = False,
+         seeds: int | None = None, motions: list[str] | None = None, jobs: int = 1,
+         duration: float | None = None, sizes: list[int] | None = None) -> dict:
+    """Run one benchmark suite; returns the document written to ``<out>/results.json``.
+
+    Parameters
+    ----------
+    suite : one of :data:`SUITES`.
+    out : output directory (default ``outputs/benchmark/<suite>``).
+    data : folder of mocap ``.npz`` files (default: the bundled clips, ``assets/mocap``).
+    quick : reduced grid (2 motions, 1 seed, 2 settings, 1 s clips) for smoke tests.
+    seeds : number of random seeds per (motion, setting) (default 3, quick 1).
+    motions : motion names (``walking_1`` or file stems / paths) instead of the suite's default.
+    jobs : worker processes (each single-threaded); the runtime suite always runs one at a time.
+    duration : clip length in seconds (default 2.5 s ~ the paper's 300 frames, quick 1 s).
+    sizes : runtime suite: target numbers of images.
+    """
+    if suite not in SUITES:
+        raise InputError(f"unknown suite '{suite}', choose from {', '.join(SUITES)}")
+    data = Path(data) if data is not None else DEFAULT_DATA
+    if not data.is_dir():
+        raise InputError(f"mocap folder {data} does not exist; pass --data")
+    out = Path(out) if out is not None else DEFAULT_OUT / suite
+    out.mkdir(parents=True, exist_ok=True)
+    seeds = seeds if seeds is not None else (1 if quick else 3)
+    duration = duration if duration is not None else (1.0 if quick else 2.5)
+    if suite == "runtime":
+        motions = (motions or [RUNTIME_MOTION])[:1]
+    elif motions is None:
+        motions = QUICK_MOTIONS if quick else (KENDALL_MOTIONS if suite == "kendall" else MOTIONS)
+    paths = [str(resolve_motion(data, m)) for m in motions]
+    base = Options()
+    doc: dict = {"suite": suite, "quick": quick, "seeds": list(range(seeds)),
+                 "motions": [Path(p).stem for p in paths], "duration_s": duration,
+                 "options": base.to_dict(), "machine": machine_info(),
+                 "command": " ".join(sys.argv), "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+    t0 = time.perf_counter()
+    if suite in SWEEPS or suite == "ablation":
+        if suite == "ablation":
+            field, values, label = "noise", ABLATION_NOISE[quick], "2D noise sigma (px)"
+            methods = ablation_variants(base)
+        else:
+            sw = SWEEPS[suite]
+            field, values, label = sw.field, sw.quick if quick else sw.values, sw.label
+            methods = {m: {} for m in METHODS}
+        specs = [{"suite": suite, "motion": p, "setting": v, "methods": methods,
+                  "settings": simulation_settings(s, duration, **{field: v})}
+                 for v in values for p in paths for s in range(seeds)]
+        records = run_jobs(sweep_job, specs, jobs, suite)
+        summary = summarise_sweep(records, list(methods), list(values))
+        table = sweep_table(summary, label)
+        doc.update(field=field, values=list(values), methods=methods)
+        title = f"{suite}: {len(paths)} motions x {seeds} seed(s), {duration:g} s clips"
+        png = plot_bars(summary, label, out / f"{suite}.png") if suite == "ablation" else \
+            plot_sweep(summary, label, title, out / f"{suite}.png")
+    elif suite == "kendall":
+        specs = [{"motion": p, "settings": simulation_settings(s, duration)}
+                 for p in paths for s in range(seeds)]
+        records = run_jobs(kendall_job, specs, jobs, suite)
+        summary = summarise_kendall(records)
+        table = kendall_table(summary)
+        png = plot_kendall(summary, out / "kendall.png")
+    else:
+        sizes = sizes or list(RUNTIME_SIZES[quick])
+        settings = SimulationSettings(num_streams=8, rate=30.0)
+        per_second = settings.num_streams * settings.rate
+        specs = [{"motion": paths[0], "setting": int(n),
+                  "settings": simulation_settings(0, n / per_second, num_streams=8,
+                                                  rate=30.0)} for n in sizes]
+        records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
+        summary = summarise_runtime(records)
+        table = runtime_table(records, summary)
+        doc.update(sizes=list(sizes), num_streams=8, rate=30.0)
+        png = plot_runtime(records, summary, out / "runtime.png")
+    doc.update(seconds=time.perf_counter() - t0, summary=summary, runs=records, table=table,
+               plot=str(png))
+    write_results(out, doc)
+    logger.info("%s: %d runs in %.0f s -> %s", suite, len(records), doc["seconds"], out)
+    return doc

@@ -1,0 +1,165 @@
+"""The benchmark's runs: one job per simulated capture, run in spawned single-threaded workers.
+
+A job takes a spec (a picklable dict: motion file, simulation settings, suite-specific fields)
+and returns its records (one dict per method, order or solve); jobs are top-level functions so a
+spawned worker can import them.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+import resource
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from ..baselines import high_pass_filter, pseudo_triangulation, sedl, trajectory_basis
+from ..core.capture import Capture
+from ..core.options import Distance, Embedding, Options
+from ..core.problem import initialise
+from ..core.sequencing import (
+    affine_time,
+    distance_matrix,
+    kendall_tau,
+    line_embedding,
+    order_from_embedding,
+)
+from ..core.solver import reconstruct
+from ..errors import InputError
+from ..evaluate import oracle_reconstruct, point_errors
+from ..synth import SimulationSettings, load_mocap, simulate
+from .suites import category
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def run_method(name: str, capture: Capture, options: Options) -> tuple[np.ndarray, dict]:
+    """Reconstruct ``capture`` with one of :data:`~.suites.METHODS`; returns (X (N, P, 3), extra
+    facts)."""
+    t_true = capture.extras["t_true"]
+    if name == "pseudo-triangulation":
+        return pseudo_triangulation(capture, options), {}
+    if name == "TB":
+        return trajectory_basis(capture, t_true), {}
+    if name == "HPF":
+        return high_pass_filter(capture, t_true), {}
+    if name == "SEDL":
+        return sedl(capture, options=options), {}
+    if name == "DLOE oracle":
+        return oracle_reconstruct(capture, t_true), {}
+    if name == "DLOE no sequencing":
+        options = options.replace(prior_weight=0.0, spectral_prior=False, stream_clocks="off")
+    elif name == "DLOE graph only":  # the paper's method: no stream clocks
+        options = options.replace(stream_clocks="off")
+    elif name != "DLOE":
+        raise InputError(f"unknown method '{name}'")
+    result = reconstruct(capture, options)
+    return result.X, {"nit": result.nit, "kendall_tau": kendall_tau(result.order, t_true),
+                      "events": int(result.events.max()) + 1}
+
+
+def sweep_job(spec: dict) -> list[dict]:
+    """Simulate one capture and reconstruct it with every method (or DLOE variant) of ``spec``."""
+    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    # DLOE is told the detector noise, as the paper set lambda2 for its noise experiments
+    base = Options(noise_px=spec["settings"].get("noise", 0.0))
+    records = []
+    for method, overrides in spec["methods"].items():
+        record = {"method": method, "motion": Path(spec["motion"]).stem, "seed":
+                  spec["settings"]["seed"], "setting": spec["setting"],
+                  "num_images": capture.num_images}
+        t0 = time.perf_counter()
+        try:
+            name = "DLOE" if spec["suite"] == "ablation" else method
+            X, extra = run_method(name, capture, base.replace(**overrides))
+        except Exception as e:  # one failing method must not sink a long sweep
+            logger.warning("%s on %s failed: %s", method, record["motion"], e)
+            record["failed"] = f"{type(e).__name__}: {e}"
+            records.append(record)
+            continue
+        record["seconds"] = time.perf_counter() - t0
+        record.update(point_errors(X, capture.extras["X_true"], capture.visible))
+        record.update(extra)
+        records.append(record)
+    return records
+
+
+def kendall_job(spec: dict) -> list[dict]:
+    """|tau| of every (embedding, distance) order on the initial and the DLOE shapes."""
+    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    t_true = capture.extras["t_true"]
+    options = Options()
+    shapes = {"initial": initialise(capture, options), "optimised": reconstruct(capture, options).X}
+    records = []
+    for stage, X in shapes.items():
+        row = {"motion": Path(spec["motion"]).stem, "category": category(spec["motion"]),
+               "seed": spec["settings"]["seed"], "stage": stage,
+               "num_images": capture.num_images}
+        for distance in Distance:
+            Z = distance_matrix(X, capture.stream_ids, capture.frame, distance)
+            for embedding in (Embedding.SPECTRAL, Embedding.MDS, Embedding.SHP):
+                order = order_from_embedding(line_embedding(Z, embedding))
+                records.append({**row, "distance": distance.value, "embedding": embedding.value,
+                                "kendall_tau": kendall_tau(order, t_true)})
+        clock = affine_time(X, capture.stream_ids, capture.frame)
+        records.append({**row, "distance": "arc", "embedding": Embedding.AFFINE.value,
+                        "kendall_tau": kendall_tau(order_from_embedding(clock), t_true)})
+    return records
+
+
+def _rss_mb() -> float:
+    """Peak resident set size of this process so far, MB (Linux reports kB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def runtime_job(spec: dict) -> list[dict]:
+    """Time one DLOE solve in a fresh process; peak memory before and after the solve."""
+    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    before = _rss_mb()
+    result = reconstruct(capture, Options())
+    t = result.timings
+    steps = t["w_step"] + t["d_step"] + t["x_step"]
+    return [{"target": spec["setting"], "num_images": capture.num_images,
+             "num_points": capture.num_points, "nit": result.nit, "seconds": result.seconds,
+             "per_iteration": steps / max(result.nit, 1),
+             **{f"{k}_per_iteration": t[k] / max(result.nit, 1)
+                for k in ("w_step", "d_step", "x_step")},
+             "timings": t, "rss_before_mb": before, "peak_rss_mb": _rss_mb(),
+             "error_mm": point_errors(result.X, capture.extras["X_true"],
+                                      capture.visible)["error_mm"]}]
+
+
+@contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    """Spawned workers inherit one BLAS / OpenMP thread each (set before they import numpy)."""
+    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    old = {k: os.environ.get(k) for k in keys}
+    os.environ.update({k: "1" for k in keys})
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def run_jobs(job: Callable[[dict], list[dict]], specs: list[dict], jobs: int, desc: str, *,
+             fresh: bool = False) -> list[dict]:
+    """Run ``job`` on every spec in ``jobs`` spawned single-threaded worker processes.
+
+    With ``fresh`` every spec gets a new process, so its peak memory is its own.
+    """
+    records: list[dict] = []
+    with _single_threaded_children(), mp.get_context("spawn").Pool(
+            max(1, jobs), maxtasksperchild=1 if fresh else None) as pool:
+        for out in tqdm(pool.imap(job, specs), total=len(specs), desc=desc, unit="run"):
+            records += out
+    return records

@@ -1,0 +1,265 @@
+"""One subject's reconstruction as a pipeline: initialise -> events -> per event: alternate ->
+robust rounds -> clocks -> assemble (docs/method.md, "The steps as implemented")."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from .alternation import Progress, soft_ray_weight, solve_event
+from .capture import Capture
+from .clocks import fit_clocks, ray_equations, time_chain
+from .events import segment_events
+from .options import Options, RobustLoss
+from .problem import assemble, initialise, normalise, parts
+from .result import Result
+from .robust import (
+    apply_swaps,
+    find_swaps,
+    loss_scale,
+    loss_weights,
+    predicted,
+    residuals_px,
+    reweighted,
+)
+from .sequencing import affine_time
+from .steps import x_step
+from .wstep import select_candidates, w_step
+
+logger = logging.getLogger("dloe_sfm")
+
+
+def solve_single(
+    capture: Capture, options: Options, progress: Progress | None = None
+) -> Result:
+    """Estimate every image's 3D points and the images' temporal graph and order (one subject).
+
+    With ``options.segment_events``, temporally disjoint events are found first
+    (:func:`initial_events`) and each event is sequenced and reconstructed on its own. With a
+    robust loss (or symmetric pairs to check) the observations are then reweighted from the
+    solution's residuals and the capture re-solved (:func:`robust_rounds`). With stream clocks
+    (``options.clocks_on``) every event filmed by videos is finally placed on its streams'
+    fitted clocks (:func:`clocked`).
+    """
+    started = time.perf_counter()
+    X_world = initialise(capture, options)
+    labels = np.zeros(capture.num_images, dtype=np.int64)
+    if options.segment_events:
+        labels = initial_events(capture, options, X_world)
+    init_seconds = time.perf_counter() - started
+    result = solve_events(capture, options, labels, X_world, progress)
+    result, solved = robust_rounds(capture, options, labels, result, progress)
+    if options.clocks_on:
+        result = clocked(solved, options, result)
+    timings = {**result.timings, "init": result.timings["init"] + init_seconds}
+    return replace(result, timings=timings, seconds=time.perf_counter() - started)
+
+
+def shape_space_graph(capture: Capture, options: Options, X_world: np.ndarray) -> sp.csr_matrix:
+    """W_var of one W-step on shapes ``X_world`` with candidates and compactness in shape space
+    (no time line yet: it is what events and subjects are found from)."""
+    norm = normalise(capture, options, X_world)
+    X = norm.to_normal(X_world)
+    n = X.shape[0]
+    cand = select_candidates(
+        X.reshape(n, -1), norm.problem, options.num_candidates, min_angle=options.min_ray_angle
+    )
+    return w_step(
+        X, np.ones(n), cand, norm.problem,
+        lambda1=options.lambda1, lambda3=options.lambda3, ridge=options.ridge,
+    )
+
+
+def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
+    """(N,) event labels from the shape-space W of the initial shapes (``shape_space_graph``).
+
+    The graph is W_var alone: the chain prior would tie the last image of one event to the
+    first of the next in every stream (and time-line candidates would bridge events). An event
+    seen by fewer than two streams cannot be triangulated; it joins the largest event.
+    """
+    W_var = shape_space_graph(capture, options, X_world)
+    labels = segment_events(W_var, capture.stream, capture.frame)
+    sizes = np.bincount(labels)
+    for e in range(labels.max() + 1):
+        if np.unique(capture.stream_ids[labels == e]).size < 2:
+            labels[labels == e] = np.argmax(sizes)
+    _, labels = np.unique(labels, return_inverse=True)
+    return labels
+
+
+def solve_events(
+    capture: Capture,
+    options: Options,
+    labels: np.ndarray,
+    X_world: np.ndarray | None,
+    progress: Progress | None = None,
+) -> Result:
+    """Solve every event on its own (from ``X_world`` when given, else each initialised on its
+    own) and assemble one result (orders concatenated by event). One event: its solve as is."""
+    if labels.max() == 0:
+        return solve_event(capture, options, X_world, progress)
+    n, p = capture.num_images, capture.num_points
+    X = np.empty((n, p, 3))
+    embedding = np.empty(n)
+    D = np.empty(n)
+    A_parts, W_parts, order, results = [], [], [], []
+    offset = 0.0
+    for e in range(int(labels.max()) + 1):
+        idx = np.flatnonzero(labels == e)
+        logger.info("event %d: %d images", e, idx.size)
+        r = solve_event(capture.subset(idx), options,
+                        None if X_world is None else X_world[idx], progress)
+        results.append(r)
+        X[idx], D[idx] = r.X, r.D
+        embedding[idx] = r.embedding - r.embedding.min() + offset
+        offset = embedding[idx].max() + 1.0
+        order.append(idx[r.order])
+        A_parts.append(parts(r.A, idx))
+        W_parts.append(parts(r.W, idx))
+    return Result(
+        X=X,
+        order=np.concatenate(order),
+        A=assemble(A_parts, n),
+        W=assemble(W_parts, n),
+        D=D,
+        events=labels,
+        embedding=embedding,
+        cost_history=np.concatenate([r.cost_history for r in results]),
+        change_history=np.concatenate([r.change_history for r in results]),
+        nit=sum(r.nit for r in results),
+        success=all(r.success for r in results),
+        message="; ".join(f"event {e}: {r.message}" for e, r in enumerate(results)),
+        seconds=sum(r.seconds for r in results),
+        timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
+        scale=results[0].scale,
+    )
+
+
+def robust_rounds(
+    capture: Capture,
+    options: Options,
+    labels: np.ndarray,
+    result: Result,
+    progress: Progress | None = None,
+) -> tuple[Result, Capture]:
+    """Iteratively reweighted re-solves against wrong detections and left/right swaps.
+
+    Each round predicts every observation from the graph (``W X``), exchanges symmetric pairs
+    that fit far better swapped, weights every observation by the robust loss of its residual
+    (pixels), drops those weighted below 1/2 and re-solves from a fresh initialisation (one
+    from shapes bent by the outliers stays bent). The first re-solve is kept only if it
+    predicts the observations it used at least 5 % better (median residual) than the plain
+    solve: real outliers bend the graph, so removing them tightens the fit, while at coarse
+    sampling the largest residuals are the graph's own interpolation errors and dropping them
+    helps nothing (docs/method.md has the measurement). Stops when no pair was swapped and the
+    rejected set changed by at most 0.1 % of the observations.
+    Returns ``result`` re-solved, with ``outliers`` the observations the final solve left out
+    and ``swaps`` every exchange kept, and the capture it was solved on (swaps undone,
+    observations reweighted).
+    """
+    robust = options.robust_loss is not RobustLoss.NONE
+    pairs = capture.symmetric_pairs if options.fix_swaps else None
+    if not robust and (pairs is None or pairs.size == 0):
+        return result, capture
+    current, swaps = capture, np.zeros((0, 3), dtype=np.int64)
+    solved = capture
+    rejected = np.zeros(capture.x.shape[:2], dtype=bool)
+    plain, expected = result, None
+    for it in range(options.robust_iterations + 1):
+        X_pred = predicted(result.W, result.X)
+        res = residuals_px(current, X_pred)
+        if it == 1 and (fit := float(np.nanmedian(res[~rejected]))) > 0.95 * expected:
+            logger.info("robust round 1 undone: the fit did not tighten (median residual "
+                        "%.2f -> %.2f px)", expected, fit)
+            result, current, swaps, solved = plain, capture, swaps[:0], capture
+            rejected = np.zeros_like(rejected)
+            break
+        scale = loss_scale(res, options.robust_scale_px)
+        new = find_swaps(current, X_pred, pairs, scale) if pairs is not None else swaps[:0]
+        trial = apply_swaps(current, new) if new.size else current
+        res = residuals_px(trial, X_pred)
+        weights = loss_weights(res, scale, options.robust_loss)
+        now = weights < 0.5
+        if now.sum() > 0.5 * current.visible.sum():
+            # a loss that drops most of the data is no longer rejecting outliers
+            logger.warning("robust round %d not run: the loss scale (%.3g px median) would drop "
+                           "%d of %d observations (robust_scale_px below the noise?)", it + 1,
+                           float(np.median(scale)), int(now.sum()), int(current.visible.sum()))
+            break
+        settled = (now != rejected).sum() <= 1e-3 * current.visible.sum()
+        if it == options.robust_iterations or (not new.size and settled):
+            break
+        expected = float(np.nanmedian(res[~now]))
+        current, swaps, rejected = trial, np.concatenate([swaps, new]), now
+        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)",
+                    it + 1, len(new), int(rejected.sum()), float(np.median(scale)))
+        solved = reweighted(current, weights) if robust else current
+        again = solve_events(solved, options, labels, None, progress)
+        result = replace(
+            again,
+            nit=again.nit + result.nit,
+            timings={k: v + result.timings.get(k, 0.0) for k, v in again.timings.items()},
+        )
+    img, col = np.nonzero(rejected)
+    return replace(
+        result,
+        solved=current if swaps.size else result.solved,
+        swaps=swaps,
+        outliers=np.stack([img, col], axis=1).astype(np.int64),
+        outlier_residual_px=residuals_px(current, predicted(result.W, result.X))[img, col],
+    ), solved
+
+
+def clocked(capture: Capture, options: Options, result: Result) -> Result:
+    """``result`` with every event that is filmed by videos (two or more streams of three or
+    more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
+    the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
+    W and D rows that chain's, its block of the order and its embedding (span kept) from the
+    clocks. ``capture`` is the one the result was solved on (:func:`robust_rounds`); an event
+    whose clocks the rays do not pin keeps DLOE's graph. ``clock`` holds the times.
+    """
+    t_start = time.perf_counter()
+    n = capture.num_images
+    X, D = result.X.copy(), result.D.copy()
+    order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
+    clock = np.full(n, np.nan)
+    chains = []  # (data, rows, cols) of every clocked event's W
+    for e in range(int(result.events.max()) + 1):
+        idx = np.flatnonzero(result.events == e)
+        ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
+        if ids.size < 2 or counts.min() < 3:
+            continue
+        sub = capture.subset(idx) if idx.size < n else capture
+        norm = normalise(sub, options, X[idx])
+        prob = norm.problem
+        Xe = norm.to_normal(X[idx])
+        t0 = affine_time(Xe, prob.streams, sub.frame)
+        E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+        t = None if t0 is None else fit_clocks(t0, prob.streams, sub.frame, E, rhs, prob.visible,
+                                                shared_rate=options.shared_rate)
+        if t is None:
+            logger.info("event %d: the rays do not pin the streams' clocks (one moved by more "
+                        "than a frame period); DLOE's graph is kept", e)
+            continue
+        # the chain's weights come from the time line: no compactness term (as the oracle)
+        W, D[idx] = time_chain(t)
+        Xe = x_step(W, D[idx], prob, lambda1=0.0, lambda2=soft_ray_weight(sub, options),
+                    X_prev=Xe)
+        X[idx], clock[idx] = norm.to_world(Xe), t
+        chains.append(parts(W, idx))
+        order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
+        lo, hi = embedding[idx].min(), embedding[idx].max()
+        embedding[idx] = lo + (t - t.min()) * (hi - lo) / max(np.ptp(t), 1e-300)
+    timings = {**result.timings, "clocks": time.perf_counter() - t_start}
+    if not chains:
+        return replace(result, timings=timings)
+    coo = result.W.tocoo()
+    dloe = np.isnan(clock)[coo.row]  # rows of the events left to DLOE's graph
+    chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
+    W = assemble(chains, n)
+    return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
+                   order=order, embedding=embedding, timings=timings)
