@@ -25,7 +25,9 @@ STAGES = {
     "simulate": (
         "dloe_sfm.stages.simulate", "simulate an unsynchronised capture of a mocap sequence"
     ),
-    "evaluate": ("dloe_sfm.evaluate", "score a result against ground truth (mm, Kendall tau)"),
+    "evaluate": (
+        "dloe_sfm.stages.evaluate", "score a result against ground truth (mm, Kendall tau)"
+    ),
     "demo": ("dloe_sfm.stages.demo", "run the whole chain on the bundled demo workspace"),
     "benchmark": ("dloe_sfm.stages.benchmark", "the paper's experiments with every baseline"),
     "import-calibration": (
@@ -34,6 +36,7 @@ STAGES = {
     "view": (
         "dloe_sfm.stages.view", "play a reconstruct output in open3d's window (or write a GIF)"
     ),
+    "sync": ("dloe_sfm.stages.sync", "print each stream's time offset and rate of an output"),
 }
 
 

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import itertools
-import json
 import logging
 from pathlib import Path
 
@@ -15,10 +13,12 @@ from .core.capture import Capture
 from .core.clocks import time_chain
 from .core.options import Options
 from .core.problem import initialise, normalise
+from .core.result import Result
 from .core.sequencing import kendall_tau
 from .core.steps import x_step
 from .errors import InputError
-from .io import NpzReader, atomic_path, check_not_input, load_capture, load_result
+from .io import NpzReader
+from .truth import GroundTruth
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -70,28 +70,22 @@ def oracle_reconstruct(
 
 
 def evaluate(
-    capture: Capture, X: np.ndarray, order: np.ndarray, *, references: bool = True,
-    result: dict | None = None,
+    capture: Capture, truth: GroundTruth, result: Result, *, references: bool = True
 ) -> dict[str, float]:
-    """Errors of X and |tau| of order against ``capture.extras`` X_true / t_true.
+    """Errors of ``result.X`` and |tau| of ``result.order`` against the truth's X and t.
 
     With ``references`` also the two yardsticks on the same capture: the oracle (X-step with the
     true temporal chain, points pinned to their rays) and pseudo-triangulation (one subject).
-    ``result`` (the arrays of a result file) adds what the simulator's scenarios know: images
-    associated correctly (``subject_true``: subjects matched by the best permutation, errors
-    then per subject), event purity (``event_true``), and the rejected outliers and fixed
-    swaps against ``outlier_true`` / ``swap_true``.
+    What else the truth knows adds: images associated correctly (``subjects``: subjects matched
+    by the best permutation, errors then per subject), event purity (``events``, when the result
+    has events), and the rejected outliers and fixed swaps against ``outliers`` / ``swaps``.
     """
-    for key in ("X_true", "t_true"):
-        if key not in capture.extras:
-            raise InputError(f"capture has no ground truth '{key}' to evaluate against")
-    result = result or {}
-    _check_truth(capture, result)
-    X_true, t_true = capture.extras["X_true"], capture.extras["t_true"]
+    _check_truth(capture, truth, result)
+    X, X_true, t_true = result.X, truth.X, truth.t
     out: dict[str, float] = {}
     vis = capture.visible
     if X_true.ndim == 4:  # several subjects: X_true (N, S, P, 3) by person
-        out.update(_subjects(capture, X, result))
+        out.update(_subjects(truth, result))
         s, p = X_true.shape[1:3]
         perm = [int(out[f"subject_{k}_person"]) for k in range(s)]
         X_true = X_true[:, perm].reshape(X_true.shape[0], s * p, 3)
@@ -100,26 +94,25 @@ def evaluate(
     if X.shape != X_true.shape:
         raise InputError(f"result X has shape {X.shape}, the capture's X_true {X_true.shape}")
     out.update(point_errors(X, X_true, vis))
-    out["kendall_tau"] = kendall_tau(order, t_true)
-    if "event_true" in capture.extras and "events" in result:
-        truth, found = capture.extras["event_true"], result["events"]
-        majority = sum(np.bincount(truth[found == e]).max() for e in np.unique(found))
+    out["kendall_tau"] = kendall_tau(result.order, t_true)
+    if truth.events is not None and result.events.size:
+        true_events, found = truth.events, result.events
+        majority = sum(np.bincount(true_events[found == e]).max() for e in np.unique(found))
         out["events_found"] = float(np.unique(found).size)
-        out["event_purity"] = majority / truth.size
-    if "outlier_true" in capture.extras:
-        truth = capture.extras["outlier_true"]
-        hit = np.zeros(truth.shape, dtype=bool)
-        if "outliers" in result:
-            hit[tuple(result["outliers"].T)] = True
+        out["event_purity"] = majority / true_events.size
+    if truth.outliers is not None:
+        outliers = truth.outliers
+        hit = np.zeros(outliers.shape, dtype=bool)
+        if result.outliers.size:
+            hit[tuple(result.outliers.T)] = True
         out["outliers_rejected"] = float(hit.sum())
-        out["outlier_recall"] = float((hit & truth).sum() / max(truth.sum(), 1))
-        out["outlier_precision"] = float((hit & truth).sum() / max(hit.sum(), 1))
-    if "swap_true" in capture.extras and capture.symmetric_pairs is not None:
-        truth, pairs = capture.extras["swap_true"], capture.symmetric_pairs
-        fixed = swaps_undone(result.get("swaps", np.zeros((0, 3), dtype=np.int64)), pairs,
-                             truth.shape)
-        out["swaps_found"] = float((fixed & truth).sum() / max(truth.sum(), 1))
-        out["swaps_false"] = float((fixed & ~truth).sum())
+        out["outlier_recall"] = float((hit & outliers).sum() / max(outliers.sum(), 1))
+        out["outlier_precision"] = float((hit & outliers).sum() / max(hit.sum(), 1))
+    if truth.swaps is not None and capture.symmetric_pairs is not None:
+        swaps, pairs = truth.swaps, capture.symmetric_pairs
+        fixed = swaps_undone(result.swaps, pairs, swaps.shape)
+        out["swaps_found"] = float((fixed & swaps).sum() / max(swaps.sum(), 1))
+        out["swaps_false"] = float((fixed & ~swaps).sum())
     if references:
         out["oracle_mm"] = point_errors(oracle_reconstruct(capture, t_true), X_true, vis)[
             "error_mm"
@@ -130,64 +123,63 @@ def evaluate(
     return out
 
 
-def _check_truth(capture: Capture, result: dict) -> None:
+def _check_truth(capture: Capture, truth: GroundTruth, result: Result) -> None:
     """Shapes and values of the ground truth and of the result's extra arrays, so that a bad
-    file is a one-line InputError naming the key."""
-    n, truth = capture.num_images, capture.extras
+    file is a one-line InputError naming the key (the file's: ``X_true``, ``outliers``, ...)."""
+    n = capture.num_images
     observations = capture.visible.shape
 
     def need(ok: bool, key: str, what: str) -> None:
         if not ok:
             raise InputError(f"ground truth / result key '{key}' must be {what}")
 
-    X_true = truth["X_true"]
+    X_true = truth.X
     need(X_true.ndim in (3, 4) and X_true.shape[0] == n and X_true.shape[-1] == 3
          and np.isfinite(X_true).all(), "X_true", f"finite, (N, P, 3) or (N, S, P, 3), N = {n}")
-    need(truth["t_true"].shape == (n,) and np.isfinite(truth["t_true"]).all(), "t_true",
+    need(truth.t.shape == (n,) and np.isfinite(truth.t).all(), "t_true",
          f"finite, shape ({n},)")
     integer = np.issubdtype
-    if "event_true" in truth:
-        e = truth["event_true"]
+    if truth.events is not None:
+        e = truth.events
         need(e.shape == (n,) and integer(e.dtype, np.integer) and (e >= 0).all(), "event_true",
              f"non-negative integers, shape ({n},)")
-    if "outlier_true" in truth:
-        need(truth["outlier_true"].shape == observations, "outlier_true",
-             f"of shape {observations}")
-    if "swap_true" in truth and capture.symmetric_pairs is not None:
-        need(truth["swap_true"].shape == (n, len(capture.symmetric_pairs)), "swap_true",
+    if truth.outliers is not None:
+        need(truth.outliers.shape == observations, "outlier_true", f"of shape {observations}")
+    if truth.swaps is not None and capture.symmetric_pairs is not None:
+        need(truth.swaps.shape == (n, len(capture.symmetric_pairs)), "swap_true",
              f"of shape ({n}, {len(capture.symmetric_pairs)})")
-    if "subject_true" in truth:
-        st = truth["subject_true"]
+    if truth.subjects is not None:
+        st = truth.subjects
         need(st.shape == observations[:2] and integer(st.dtype, np.integer) and (st >= -1).all()
              and (X_true.ndim != 4 or (st < X_true.shape[1]).all()), "subject_true",
              f"integers in -1..S-1, shape {observations[:2]}")
-    if "outliers" in result:
-        o = result["outliers"]
+    if result.outliers.size:
+        o = result.outliers
         need(o.ndim == 2 and o.shape[1] == len(observations) and (o >= 0).all()
              and (o < np.array(observations)).all(), "outliers",
              f"(K, {len(observations)}) indices into {observations}")
-    if "swaps" in result:
-        w = result["swaps"]
+    if result.swaps.size:
+        w = result.swaps
         need(w.ndim == 2 and w.shape[1] == 3 and ((w[:, 0] >= 0) & (w[:, 0] < n)).all(),
              "swaps", f"(K, 3) with images in 0..{n - 1}")
-    if "assignment" in result:
-        a = result["assignment"]
+    if result.assignment is not None:
+        a = result.assignment
         need(a.shape == observations[:2] and (a >= -1).all(), "assignment",
              f"integers >= -1, shape {observations[:2]}")
 
 
-def _subjects(capture: Capture, X: np.ndarray, result: dict) -> dict[str, float]:
-    """Association of a several-subject result against ``subject_true`` and per-person errors."""
-    if "assignment" not in result or "subject_true" not in capture.extras:
+def _subjects(truth: GroundTruth, result: Result) -> dict[str, float]:
+    """Association of a several-subject result against the truth's ``subjects`` and
+    per-person errors."""
+    if result.assignment is None or truth.subjects is None:
         raise InputError("a several-subject capture needs the result's 'assignment' and the "
                          "capture's 'subject_true' to be evaluated")
-    truth, assignment = capture.extras["subject_true"], result["assignment"]
-    X_true = capture.extras["X_true"]
+    X, X_true, assignment = result.X, truth.X, result.assignment
     s, p = X_true.shape[1:3]
     if assignment.max() + 1 != s:
         raise InputError(f"result has {assignment.max() + 1} subjects, the capture {s} people")
-    perm = best_permutation(assignment, truth)
-    out = {"associated": float((np.array(perm)[assignment] == truth).all(axis=1).mean())}
+    perm = best_permutation(assignment, truth.subjects)
+    out = {"associated": float((np.array(perm)[assignment] == truth.subjects).all(axis=1).mean())}
     for k, person in enumerate(perm):
         out[f"subject_{k}_person"] = float(person)
         out[f"subject_{k}_error_mm"] = float(
@@ -297,50 +289,3 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
             scores["sync_rms_ms"] = 1000 * _sync_rms(t_est, t_true, events)
     return scores
 
-
-def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
-    """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth), or
-    a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`)."""
-    if out is not None:
-        check_not_input(out, (result, capture))
-    if Path(result).is_dir():
-        scores = evaluate_output(result, capture)
-    else:
-        cap = load_capture(capture)
-        res = load_result(result)
-        scores = evaluate(cap, res["X"], res["order"], references=references, result=res)
-    if out is not None:
-        with atomic_path(out) as tmp:
-            tmp.write_text(json.dumps(scores, indent=2))
-    return scores
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("result", type=Path,
-                        help="result.npz, or a reconstruct output folder")
-    parser.add_argument("capture", type=Path,
-                        help="capture.npz with X_true and t_true; for a folder, a truth .npz "
-                             "with image_names, X_true (metres) and optionally t_true (s)")
-    parser.add_argument(
-        "--no-references",
-        dest="references",
-        action="store_false",
-        help="skip the oracle and pseudo-triangulation yardsticks",
-    )
-    parser.add_argument("--json", dest="out", type=Path, help="also write the scores as JSON")
-
-
-def run(args: argparse.Namespace) -> int:
-    scores = main(args.result, args.capture, references=args.references, out=args.out)
-    width = max(len(k) for k in scores)
-    for k, v in scores.items():
-        print(f"{k:<{width}}  {v:.4f}")
-    return 0
-
-
-if __name__ == "__main__":
-    import sys
-
-    from .cli import run_stage
-
-    sys.exit(run_stage(__name__))

@@ -22,6 +22,7 @@ from . import progress
 from .columns import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
 from .core.capture import Capture, project
 from .core.result import Result
+from .core.sync import Fps, check_fps, stream_clocks, sync_report, times_in_unit
 from .errors import InputError
 from .io import atomic_path, check_output, save_npz
 from .mocap_export import write_mocap
@@ -65,10 +66,11 @@ def detection_subjects(capture: Capture, result: Result) -> np.ndarray | None:
     """(N, M') subject of each detection of every image, in the order of the image's keypoint
     list up to its last detection used (-1: not used, e.g. too few points or a stray), from
     ``result.assignment``; None for one subject. ``capture`` is the solver's input: without
-    ``extras["detection_index"]`` (``observations.build_capture``) its slot order is the list's."""
+    ``image_ids["detection_index"]`` (``observations.build_capture``) its slot order is the
+    list's."""
     if result.assignment is None:
         return None
-    index = capture.extras.get("detection_index")
+    index = capture.image_ids.get("detection_index")
     if index is None or index.shape != result.assignment.shape:
         return result.assignment.astype(np.int64)
     out = np.full((len(index), int(index.max()) + 1), -1, dtype=np.int64)
@@ -213,7 +215,7 @@ def _check_shapes(capture: Capture, result: Result) -> None:
 def write_outputs(folder: Path, capture: Capture, result: Result, *,
                   static_xyz: np.ndarray | None = None, static_rgb: np.ndarray | None = None,
                   layout: Layout | None = None, report: dict | None = None,
-                  export_rate: float | None = None) -> dict:
+                  export_rate: float | None = None, fps: Fps = None) -> dict:
     """Write the section-4 files into the existing folder ``folder`` (not atomic on its own).
 
     ``capture`` is the solver's input; the observations written and scored are those of
@@ -223,7 +225,9 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries (inputs,
     parameters, stage timings, ...) are merged into ``report.json``. TRC / C3D / wide CSV:
     ``mocap_export.write_mocap`` (``export_rate`` samples per reference frame; markers
-    ``s<subject>_<name>`` with several subjects). Returns the report.
+    ``s<subject>_<name>`` with several subjects). ``fps``: the streams' frame rates (one for
+    all or per stream id; ``core.sync``), for ``sequence.csv``'s times in seconds and the
+    report's ``sync``. Returns the report.
     """
     detection_subject = detection_subjects(capture, result)
     capture = solved_capture(capture, result)
@@ -298,6 +302,9 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                                [f"s{s}_{name}" for s, name in zip(subject_id, point_names,
                                                                   strict=True)]
                                if subjects else point_names, export_rate=export_rate)
+    check_fps(fps, capture.stream_ids)
+    sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"]), fps)
+    times = times_in_unit(times, result.events, sync, fps)
 
     with open(folder / "sequence.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -325,6 +332,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
             "seconds": float(result.seconds),
             "timings": dict(result.timings),
             "scale": float(result.scale),
+            "noise_px": float(result.noise_px),
             "cost_history": np.asarray(result.cost_history, dtype=np.float64),
             "change_history": np.asarray(result.change_history, dtype=np.float64),
         },
@@ -336,6 +344,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         "event_summaries": _event_summaries(capture, result, errors),
         "subject_summaries": _subject_summaries(capture, result, errors, subject_id),
         "mocap_export": mocap,
+        "time_unit": sync["time_unit"],
+        "sync": sync,
         **robust,
     }
     full_report = _json_ready(full_report)
@@ -348,7 +358,7 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
                    workspace: Workspace | None = None, static_xyz: np.ndarray | None = None,
                    static_rgb: np.ndarray | None = None, layout: Layout | None = None,
                    report: dict | None = None, overwrite: bool = False, plots: bool = True,
-                   export_rate: float | None = None) -> dict:
+                   export_rate: float | None = None, fps: Fps = None) -> dict:
     """Write the outputs of docs/interfaces.md ("Reconstruct outputs") of a solved capture to
     ``out`` atomically (``write_outputs``, and ``plots/`` unless ``plots=False``:
     ``viz.write_plots``); returns the report written to ``report.json``.
@@ -357,7 +367,8 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
     its static points go to the animation and, unless ``static_xyz`` (M, 3) / ``static_rgb``
     (M, 3) uint8 are given, to ``static.ply``; its images to the overlays. An existing ``out``
     is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it (``io.check_output``),
-    in which case it is replaced only once the new folder is complete.
+    in which case it is replaced only once the new folder is complete. ``export_rate``, ``fps``:
+    as :func:`write_outputs`.
     """
     out = Path(out)
     target = check_output(out, overwrite=overwrite, protected=[] if workspace is None else
@@ -369,7 +380,7 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
         tmp.mkdir()
         summary = write_outputs(tmp, capture, result, static_xyz=static_xyz,
                                 static_rgb=static_rgb, layout=layout, report=report,
-                                export_rate=export_rate)
+                                export_rate=export_rate, fps=fps)
         if plots:
             from . import viz  # matplotlib / cv2 only when plotting
 

@@ -23,6 +23,7 @@ from .core.capture import OPTIONAL_KEYS, REQUIRED_KEYS, Capture, field_shapes
 from .core.result import Result
 from .errors import InputError
 from .resources import check_memory
+from .truth import GroundTruth
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -226,10 +227,10 @@ MAX_DEFLATE_RATIO = 1100
 """Deflate compresses at most ~1032:1: a member claiming more holds a lying size."""
 SMALL_ARRAY = 1 << 20
 """Elements any key may hold regardless of the other arrays' sizes (histories, scalars)."""
-CAPTURE_EXTRAS = ("X_true", "t_true", "event_true", "subject_true", "outlier_true",
-                  "swap_true", "x_clean", "parents")
-"""Keys of a capture file read beside its fields (ground truth for ``evaluate`` and the
-benchmarks, written by ``simulate``); any other key is skipped without being decompressed."""
+TRUTH_KEYS = ("X_true", "t_true", "event_true", "subject_true", "outlier_true", "swap_true",
+              "x_clean", "parents")
+"""Ground-truth keys of a capture file read by :func:`load_truth` (written by ``simulate``;
+for ``evaluate`` and the benchmarks); any other key is skipped without being decompressed."""
 RESULT_KEYS = ("X", "order", "A_data", "A_indices", "A_indptr", "W_data", "W_indices",
                "W_indptr", "D", "events", "embedding", "cost_history", "change_history",
                "seconds", "subject_id", "point_id", "assignment", "outliers", "swaps",
@@ -348,10 +349,22 @@ def _check_bound(npz: NpzReader, key: str, limit: int, what: str) -> None:
         )
 
 
+def _x_shape(npz: NpzReader) -> tuple[int, ...]:
+    """The checked header shape of a capture file's ``x``."""
+    if "x" not in npz.files:
+        raise InputError(f"{npz.path}: missing key(s) 'x'")
+    x_shape = npz.header("x", "iuf")[0]
+    if len(x_shape) not in (3, 4) or x_shape[-1] != 2:
+        raise InputError(
+            f"{npz.path}: field 'x' must have shape (N, P, 2) or (N, M, P, 2), got {x_shape}"
+        )
+    return x_shape
+
+
 def load_capture(path: Path | str, *, validate: bool = True) -> Capture:
-    """Read a ``capture.npz``. The keys ``CAPTURE_EXTRAS`` (ground truth) go to
-    ``Capture.extras``; other keys are not read. Every array's header is checked against the
-    others' before any data is decompressed."""
+    """Read a ``capture.npz``: its fields only (the ground truth: :func:`load_truth`; other
+    keys are not read). Every array's header is checked against the others' before any data is
+    decompressed."""
     path = Path(path)
     with NpzReader(path) as npz:
         missing = [k for k in REQUIRED_KEYS if k not in npz.files]
@@ -361,30 +374,38 @@ def load_capture(path: Path | str, *, validate: bool = True) -> Capture:
         kinds = {k: "iuf" for k in keys} | {"image_names": "iuU", "symmetric_pairs": "iu"}
         for k in keys:
             npz.header(k, kinds[k])
-        x_shape = npz._headers["x"][0]
-        if len(x_shape) not in (3, 4) or x_shape[-1] != 2:
-            raise InputError(
-                f"{path}: field 'x' must have shape (N, P, 2) or (N, M, P, 2), got {x_shape}"
-            )
+        x_shape = _x_shape(npz)
         for k, shape in field_shapes(x_shape).items():
             if k in keys and npz._headers[k][0] != shape:
                 raise InputError(
                     f"{path}: field '{k}' must have shape {shape}, got {npz._headers[k][0]}"
                 )
-        x_size = math.prod(x_shape)
         if "symmetric_pairs" in keys:
             _check_bound(npz, "symmetric_pairs", x_shape[-2] ** 2 + SMALL_ARRAY, "field 'x'")
-        extra = [k for k in CAPTURE_EXTRAS if k in npz.files]
-        for k in extra:
-            npz.header(k)
-            _check_bound(npz, k, 2 * x_size + SMALL_ARRAY, f"field 'x' {x_shape}")
-        check_memory(_sizes(npz, keys + extra), f"{path}: reading it")
+        check_memory(_sizes(npz, keys), f"{path}: reading it")
         fields = {k: npz.read(k, kinds[k]) for k in keys}
-        truth = {k: npz.read(k) for k in extra}
     if "symmetric_pairs" in fields and fields["symmetric_pairs"].size % 2:
         raise InputError(f"{path}: field 'symmetric_pairs' must have shape (K, 2)")
-    capture = Capture(**fields, extras=truth)
+    capture = Capture(**fields)
     return capture.validate(str(path)) if validate else capture
+
+
+def load_truth(path: Path | str) -> GroundTruth:
+    """Read the ground truth of a ``capture.npz`` (the keys ``TRUTH_KEYS``; ``X_true`` and
+    ``t_true`` required), headers checked against ``x`` before any data is decompressed.
+    Shapes and values are checked where the truth is used (``evaluate``)."""
+    path = Path(path)
+    with NpzReader(path) as npz:
+        for k in ("X_true", "t_true"):
+            if k not in npz.files:
+                raise InputError(f"{path}: missing ground-truth key '{k}'")
+        x_shape = _x_shape(npz)
+        keys = [k for k in TRUTH_KEYS if k in npz.files]
+        for k in keys:
+            npz.header(k)
+            _check_bound(npz, k, 2 * math.prod(x_shape) + SMALL_ARRAY, f"field 'x' {x_shape}")
+        check_memory(_sizes(npz, keys), f"{path}: reading it")
+        return GroundTruth.from_arrays({k: npz.read(k) for k in keys})
 
 
 def read_mocap(path: Path | str) -> tuple[np.ndarray, float, np.ndarray | None]:
@@ -414,12 +435,13 @@ def read_mocap(path: Path | str) -> tuple[np.ndarray, float, np.ndarray | None]:
     return positions, fps, parents
 
 
-def save_capture(path: Path | str, capture: Capture, **extra: np.ndarray) -> Path:
-    """Write a ``capture.npz`` (extras such as ``X_true`` / ``t_true`` ride along)."""
+def save_capture(path: Path | str, capture: Capture, truth: GroundTruth | None = None) -> Path:
+    """Write a ``capture.npz``: the capture's fields and, with ``truth``, its keys
+    (``X_true``, ``t_true``, ...: ``truth.FILE_KEYS``)."""
     arrays = {k: getattr(capture, k) for k in (*REQUIRED_KEYS, *OPTIONAL_KEYS)}
     arrays = {k: v for k, v in arrays.items() if v is not None}
-    arrays.update(capture.extras)
-    arrays.update(extra)
+    if truth is not None:
+        arrays.update(truth.arrays())
     return save_npz(path, **arrays)
 
 
@@ -455,9 +477,11 @@ def save_result(path: Path | str, result: Result) -> Path:
     return save_npz(path, **result_arrays(result))
 
 
-def load_result(path: Path | str) -> dict[str, np.ndarray]:
-    """Read a ``result.npz`` (the keys of ``RESULT_KEYS``) into a dict; ``A`` (and ``W`` when
-    present) as CSR matrices. Headers are checked against ``X`` before any data is read."""
+def load_result(path: Path | str) -> Result:
+    """Read a ``result.npz`` (the keys of ``RESULT_KEYS``) as a :class:`Result`. Headers are
+    checked against ``X`` before any data is read. What the file lacks: ``W`` all zero, ``D``,
+    ``events``, ``embedding`` and the histories empty, ``seconds`` NaN, the other fields their
+    defaults; ``nit``, ``success`` and ``message`` are not stored (0, True, "")."""
     path = Path(path)
     with NpzReader(path) as npz:
         missing = [
@@ -501,4 +525,16 @@ def load_result(path: Path | str) -> dict[str, np.ndarray]:
                     f"an (N, N) sparse matrix ({_reason(e)})"
                 ) from None
             out[name] = M
-    return out
+    seconds = out.get("seconds", np.float64(np.nan))
+    if seconds.size != 1:
+        raise InputError(f"{path}: key 'seconds' must be one number, got shape {seconds.shape}")
+    empty = np.zeros(0)
+    optional = {k: out[k] for k in ("subject_id", "point_id", "assignment", "outliers", "swaps",
+                                    "outlier_residual_px") if k in out}
+    return Result(
+        X=out["X"], order=out["order"], A=out["A"], W=out.get("W", sp.csr_matrix((n, n))),
+        D=out.get("D", empty), events=out.get("events", np.zeros(0, dtype=np.int64)),
+        embedding=out.get("embedding", empty), cost_history=out.get("cost_history", empty),
+        change_history=out.get("change_history", empty), nit=0, success=True, message="",
+        seconds=float(seconds.ravel()[0]), **optional,
+    )

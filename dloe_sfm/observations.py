@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import re
 from pathlib import PurePosixPath
+from typing import NamedTuple
 
 import numpy as np
 
@@ -168,9 +169,19 @@ def _undistorted(ws: Workspace, name: str, pts: np.ndarray, min_score: float
     return x, np.where(ok, np.clip(np.nan_to_num(pts[:, 2], nan=0.0), 0.0, 1.0), 0.0)
 
 
+class Observations(NamedTuple):
+    """What :func:`build_capture` returns: the capture, the names of the registered images left
+    out for want of a usable detection, and the layout indices of the points no image observes
+    (left out of the capture)."""
+
+    capture: Capture
+    skipped_images: list[str]
+    unobserved_points: list[int]
+
+
 def observed_layout(layout: Layout, unobserved: list[int]) -> Layout:
     """``layout`` without the points ``build_capture`` left out because no image observes them
-    (their indices: ``capture.extras["unobserved_points"]``), so it matches the capture."""
+    (their indices: ``Observations.unobserved_points``), so it matches the capture."""
     if not unobserved:
         return layout
     return layout.subset([j for j in range(layout.num_points) if j not in set(unobserved)])
@@ -183,15 +194,15 @@ def build_capture(
     stream_pattern: str | None = None,
     min_score: float = 0.0,
     person: str | int = "auto",
-) -> Capture:
-    """The capture of every registered image with keypoints.
+) -> Observations:
+    """The capture of every registered image with keypoints (and what was left out of it).
 
     Keypoints naming images the model does not know raise InputError, unless they hold no
     detection (then they are only logged); unregistered images are logged and skipped. Images
     without a usable detection (the detector found nobody, or only points below
-    ``min_score``) are left out with one warning and listed in ``extras["skipped_images"]``
-    (a list of names); only when no image is left is it an error. Likewise points no image
-    observes are left out of x (listed by layout index in ``extras["unobserved_points"]``;
+    ``min_score``) are left out with one warning and listed in ``skipped_images`` (a list of
+    names); only when no image is left is it an error. Likewise points no image observes are
+    left out of x (listed by layout index in ``unobserved_points``;
     :func:`observed_layout` is the layout of the rest); only when none is observed is it an
     error.
 
@@ -206,9 +217,9 @@ def build_capture(
     x in the ideal pinhole ``ws.pinhole(name)`` (COLMAP pixel convention), NaN = missing
     (score below ``min_score``, or not undistortable); confidence (N, P) or (N, M, P) = score
     clipped to [0, 1], 0 where missing; streams as in ``assign_streams``; ``symmetric_pairs``
-    from the layout. ``extras["detection_index"]`` (N, M) or (N,) int: the index of each
+    from the layout. ``image_ids["detection_index"]`` (N, M) or (N,) int: the index of each
     detection in the image's keypoint list (-1 = empty slot). When a COLMAP rig frame holds
-    several of the images, ``extras["colmap_frame_id"]`` (N,) marks those taken together.
+    several of the images, ``image_ids["colmap_frame_id"]`` (N,) marks those taken together.
     """
     source = shown(kp.source) if kp.source is not None else "keypoints"
     person = _parse_person(person)
@@ -294,15 +305,14 @@ def build_capture(
         x, confidence = x[..., observed, :], confidence[..., observed]
         seen = seen[..., observed]
     stream, frame = assign_streams(ws, names, stream_pattern)
-    extras = {"detection_index": detection if person == "all" else detection[:, 0],
-              "skipped_images": empty, "unobserved_points": unobserved}
+    image_ids = {"detection_index": detection if person == "all" else detection[:, 0]}
     if any(ws.frame_size(n) > 1 for n in names):
-        extras["colmap_frame_id"] = np.array([ws.frame_id(n) for n in names], dtype=np.int64)
+        image_ids["colmap_frame_id"] = np.array([ws.frame_id(n) for n in names], dtype=np.int64)
     pairs = np.asarray(observed_layout(kp.layout, unobserved).symmetric_pairs,
                        dtype=np.int64).reshape(-1, 2)
     capture = Capture(
         x=x, K=np.stack(Ks), R=np.stack(Rs), C=np.stack(Cs), stream=stream, frame=frame,
-        confidence=confidence, image_names=np.array(names), extras=extras,
+        confidence=confidence, image_names=np.array(names), image_ids=image_ids,
         symmetric_pairs=pairs if pairs.size else None,
     )
     n_streams = np.unique(capture.stream_ids).size
@@ -313,4 +323,4 @@ def build_capture(
                 len(names), int(observed.sum()), n_streams, int((stream < 0).sum()),
                 int(seen.sum()),
                 f", up to {slots} detections per image" if person == "all" else "")
-    return capture.validate(source)
+    return Observations(capture.validate(source), empty, unobserved)

@@ -339,7 +339,8 @@ class GifWriter(AbstractMovieWriter):
     frame, taken from the first, middle and last frames plus the exact ``colors`` (K, 3) uint8
     (at most 128; small marks would otherwise be merged with their surroundings): a pixel
     that did not change keeps its palette index, so each GIF frame stores only what moved
-    (about ten times smaller and faster to encode than a palette per frame)."""
+    (smaller and faster to encode than a palette per frame: docs/method.md, "Around the
+    solver")."""
 
     def __init__(self, *, fps: float, colors: np.ndarray | None = None):
         super().__init__(fps=fps)

@@ -25,10 +25,8 @@ def interleaved_capture(X: np.ndarray, times: np.ndarray, num_streams: int = 4) 
     n = X.shape[0]
     K, R, C = ring_cameras(CENTRE, num=num_streams)
     stream = np.arange(n) % num_streams
-    cap = Capture(x=project(X, K[stream], R[stream], C[stream]), K=K[stream], R=R[stream],
-                  C=C[stream], stream=stream, frame=np.arange(n) // num_streams)
-    cap.extras.update(X_true=X, t_true=times)
-    return cap
+    return Capture(x=project(X, K[stream], R[stream], C[stream]), K=K[stream], R=R[stream],
+                   C=C[stream], stream=stream, frame=np.arange(n) // num_streams)
 
 
 def relative_error(X: np.ndarray, X_true: np.ndarray) -> float:

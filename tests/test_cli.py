@@ -9,7 +9,7 @@ import pytest
 from dloe_sfm.config import load_options
 from dloe_sfm.core.options import Embedding
 from dloe_sfm.errors import InputError
-from dloe_sfm.io import load_capture, load_result, save_npz
+from dloe_sfm.io import load_capture, load_result, load_truth, save_npz
 
 
 def dloe(*args, cwd=None):
@@ -42,7 +42,7 @@ def capture_file(tmp_path_factory, assets_dir):
 def test_simulate_writes_the_protocol(capture_file):
     cap = load_capture(capture_file)
     assert cap.num_points == 28 and np.unique(cap.stream).tolist() == [0, 1, 2, 3]
-    t = cap.extras["t_true"]
+    t = load_truth(capture_file).t
     assert np.unique(t).size == t.size  # no two images share an instant
     for s in range(4):  # 30 Hz per stream, offsets of a quarter period
         ts = np.sort(t[cap.stream == s])
@@ -55,9 +55,9 @@ def test_solve_then_evaluate(capture_file, tmp_path):
     assert r.returncode == 0, r.stderr
     res = load_result(out)
     n = load_capture(capture_file).num_images
-    assert res["X"].shape == (n, 28, 3) and sorted(res["order"].tolist()) == list(range(n))
-    assert res["A"].shape == (n, n) and res["A"].nnz < 12 * n
-    assert res["events"].shape == (n,) and res["cost_history"].ndim == 1 and res["seconds"] > 0
+    assert res.X.shape == (n, 28, 3) and sorted(res.order.tolist()) == list(range(n))
+    assert res.A.shape == (n, n) and res.A.nnz < 12 * n
+    assert res.events.shape == (n,) and res.cost_history.ndim == 1 and res.seconds > 0
     r = dloe("evaluate", out, capture_file, "--json", tmp_path / "scores.json")
     assert r.returncode == 0, r.stderr
     scores = dict(line.split() for line in r.stdout.strip().splitlines())
@@ -77,8 +77,8 @@ def test_two_people_through_the_command_line(assets_dir, tmp_path):
     r = dloe("solve", cap, "--out", res)
     assert r.returncode == 0, r.stderr
     result = load_result(res)
-    assert result["X"].shape[1:] == (56, 3) and result["assignment"].shape[1] == 2
-    assert np.array_equal(result["subject_id"], np.repeat([0, 1], 28))
+    assert result.X.shape[1:] == (56, 3) and result.assignment.shape[1] == 2
+    assert np.array_equal(result.subject_id, np.repeat([0, 1], 28))
     r = dloe("evaluate", res, cap)
     assert r.returncode == 0, r.stderr
     scores = dict(line.split() for line in r.stdout.strip().splitlines())

@@ -10,6 +10,7 @@ from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import oracle_reconstruct, point_errors
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+from dloe_sfm.truth import Simulated
 
 SPARSE = dict(rate=7.5, drop=0.3, missing=0.3)
 
@@ -17,7 +18,8 @@ SPARSE = dict(rate=7.5, drop=0.3, missing=0.3)
 @pytest.fixture(scope="module")
 def sparse_walk(assets_dir):
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    return simulate(seq, SimulationSettings(duration=3.0, seed=0, **SPARSE)).validate()
+    cap, truth = simulate(seq, SimulationSettings(duration=3.0, seed=0, **SPARSE))
+    return Simulated(cap.validate(), truth)
 
 
 def _equations(cap):
@@ -35,9 +37,9 @@ def test_time_chain_reproduces_constant_velocity():
 def test_spline_gradient_matches_finite_differences(sparse_walk):
     """The Kaufman Jacobian gives the exact gradient of the variable-projection residual (exact
     without the ridge, hence a negligible one here)."""
-    cap = sparse_walk
+    cap, truth = sparse_walk
     E, rhs = _equations(cap)
-    t = cap.extras["t_true"] + 0.02 * (cap.stream == 1) - 0.01 * (cap.stream == 2)
+    t = truth.t + 0.02 * (cap.stream == 1) - 0.01 * (cap.stream == 2)
     dt = np.stack([cap.stream == 1, (cap.stream == 2) * cap.frame], axis=1).astype(float)
     start = t.min() - 1.0
     r, J = spline_residuals(t, E, rhs, cap.visible, 0.15, start, dt, ridge=1e-12)
@@ -53,8 +55,8 @@ def test_spline_gradient_matches_finite_differences(sparse_walk):
 def test_clocks_recover_stream_offsets(sparse_walk):
     """From offsets 20-40 ms wrong (a sixth to a third of a frame period at 7.5 Hz) back to
     the true clocks: within 1 ms with the rate shared, 2 ms (median) with free rates."""
-    cap = sparse_walk
-    truth = cap.extras["t_true"]
+    cap, sim = sparse_walk
+    truth = sim.t
     E, rhs = _equations(cap)
     t0 = truth + np.array([0.0, 0.04, -0.03, 0.02])[cap.stream]
     for shared, bound in ((True, 1.0), (False, 2.0)):
@@ -68,15 +70,15 @@ def test_clocks_recover_stream_offsets(sparse_walk):
 def test_stream_clocks_meet_the_sparse_target(sparse_walk):
     """7.5 Hz per stream, 30 % dropped, 30 % missing: within 2 x oracle + 3 mm and half the
     pseudo-triangulation (DLOE's own graph: 25.5 mm, 3.8 x the oracle)."""
-    cap = sparse_walk
-    X_true, vis = cap.extras["X_true"], cap.visible
+    cap, truth = sparse_walk
+    X_true, vis = truth.X, cap.visible
     r = reconstruct(cap)  # stream clocks: on by default with hard rays
     err = point_errors(r.X, X_true, vis)["error_mm"]
-    oracle = point_errors(oracle_reconstruct(cap, cap.extras["t_true"]), X_true, vis)["error_mm"]
+    oracle = point_errors(oracle_reconstruct(cap, truth.t), X_true, vis)["error_mm"]
     init = point_errors(initialise(cap, Options()), X_true, vis)["error_mm"]
     assert err <= 2 * oracle + 3 and err <= 0.5 * init
     assert r.timings["clocks"] > 0 and np.isfinite(r.clock).all()
-    assert kendall_tau(r.order, cap.extras["t_true"]) == pytest.approx(1.0)
+    assert kendall_tau(r.order, truth.t) == pytest.approx(1.0)
 
 
 def test_stream_clocks_default_follows_the_ray_weight():

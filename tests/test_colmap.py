@@ -212,8 +212,8 @@ def test_rig_frames_mark_synchronous_images(tmp_path) -> None:
             if np.isfinite(u):
                 rows.append(f"{name},{j},{u},{v}")
     (tmp_path / "kp.csv").write_text("\n".join(rows))
-    capture = build_capture(ws, read_keypoints("csv", tmp_path / "kp.csv", workspace=ws))
-    frame_ids = capture.extras["colmap_frame_id"]
+    capture = build_capture(ws, read_keypoints("csv", tmp_path / "kp.csv", workspace=ws)).capture
+    frame_ids = capture.image_ids["colmap_frame_id"]
     assert {ws.rig_id(n) for n in names} == {1}
     # camera 1 and camera 2 images of frame k share a COLMAP frame, streams follow cameras
     np.testing.assert_array_equal(capture.stream, [0, 0, 0, 1, 1, 1])
@@ -242,7 +242,7 @@ def test_sacre_coeur_round_trip(shared_dir, tmp_path) -> None:
             rows.append(f"{name},{j},{float(u)!r},{float(v)!r},0.9")
     (tmp_path / "kp.csv").write_text("\n".join(rows) + "\n")
     kp = read_keypoints("csv", tmp_path / "kp.csv", workspace=ws, num_points=len(X))
-    capture = build_capture(ws, kp)
+    capture = build_capture(ws, kp).capture
     assert list(capture.image_names) == ws.image_names
     assert (capture.stream == -1).all()  # one photo per camera: lone photos
     rays = capture.rays()

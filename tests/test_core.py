@@ -33,6 +33,7 @@ from dloe_sfm.core.steps import (
 from dloe_sfm.core.wstep import select_candidates, w_step
 from dloe_sfm.evaluate import oracle_reconstruct
 from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
+from dloe_sfm.truth import GroundTruth, Simulated
 
 
 def osqp_simplex(H, g):
@@ -89,17 +90,16 @@ def small_capture(rng, n_per_stream=12, streams=3, p=6, motion=0.02):
         C=C1[stream],
         stream=stream,
         frame=frame,
-        extras={"X_true": X, "t_true": t},
     )
-    return cap.validate()
+    return Simulated(cap.validate(), GroundTruth(X=X, t=t))
 
 
 def test_w_step_rows_match_osqp(rng):
-    cap = small_capture(rng)
+    cap, truth = small_capture(rng)
     n = cap.num_images
     opts = Options()
     prob = build_problem(cap, opts, np.zeros(3), 1.0)
-    X = cap.extras["X_true"] + 0.01 * rng.standard_normal(cap.extras["X_true"].shape)
+    X = truth.X + 0.01 * rng.standard_normal(truth.X.shape)
     D = rng.uniform(0.5, 1.5, n)
     cand = select_candidates(X.reshape(n, -1), prob, 5, min_angle=15.0)
     lam1, lam3, ridge = 1e-3, 1e-4, 1e-9
@@ -126,10 +126,10 @@ def test_w_step_rows_match_osqp(rng):
 
 
 def test_d_step_matches_scipy(rng):
-    cap = small_capture(rng, n_per_stream=5)
+    cap, truth = small_capture(rng, n_per_stream=5)
     n = cap.num_images
     prob = build_problem(cap, Options(), np.zeros(3), 1.0)
-    X = cap.extras["X_true"] + 0.05 * rng.standard_normal(cap.extras["X_true"].shape)
+    X = truth.X + 0.05 * rng.standard_normal(truth.X.shape)
     cand = select_candidates(X.reshape(n, -1), prob, 4, min_angle=15.0)
     W = w_step(X, np.ones(n), cand, prob, lambda1=0.0, lambda3=0.0, ridge=1e-6)
     lam1, lam3, floor = 0.3, 1e-3, 0.5
@@ -154,11 +154,11 @@ def test_d_step_matches_scipy(rng):
 
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])
 def test_x_step_matches_dense_least_squares(rng, lambda2):
-    cap = small_capture(rng, n_per_stream=5, p=3)
+    cap, truth = small_capture(rng, n_per_stream=5, p=3)
     n, p = cap.num_images, cap.num_points
     cap.x[2, 1] = np.nan  # one unobserved point
     prob = build_problem(cap, Options(), np.zeros(3), 1.0)
-    X0 = cap.extras["X_true"]
+    X0 = truth.X
     cand = select_candidates(X0.reshape(n, -1), prob, 4, min_angle=15.0)
     W = w_step(X0, np.ones(n), cand, prob, lambda1=0.0, lambda3=0.0, ridge=1e-6)
     D, lam1 = rng.uniform(0.5, 1.5, n), 0.05
@@ -207,9 +207,9 @@ def test_x_step_matches_dense_least_squares(rng, lambda2):
 
 
 def test_oracle_exact_on_linear_motion(rng):
-    cap = small_capture(rng)
-    X = oracle_reconstruct(cap, cap.extras["t_true"])
-    X_true = cap.extras["X_true"]
+    cap, truth = small_capture(rng)
+    X = oracle_reconstruct(cap, truth.t)
+    X_true = truth.X
     assert np.linalg.norm(X - X_true) / np.linalg.norm(X_true) < 1e-6
 
 
@@ -311,11 +311,12 @@ def assert_near_oracle(cap, X, X_true, t):
 
 def walking_capture(assets_dir, **kw):
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    return simulate(seq, SimulationSettings(duration=1.5, **kw)).validate()
+    cap, truth = simulate(seq, SimulationSettings(duration=1.5, **kw))
+    return Simulated(cap.validate(), truth)
 
 
 def test_cost_decreases_monotonically(assets_dir):
-    cap = walking_capture(assets_dir)
+    cap = walking_capture(assets_dir).capture
     r = reconstruct(
         cap,
         Options(
@@ -328,8 +329,8 @@ def test_cost_decreases_monotonically(assets_dir):
 
 
 def test_end_to_end_walking_accuracy(assets_dir):
-    cap = walking_capture(assets_dir)
-    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+    cap, truth = walking_capture(assets_dir)
+    X_true, t = truth.X, truth.t
     r = reconstruct(cap, Options())
     assert_near_oracle(cap, r.X, X_true, t)
     assert kendall_tau(r.order, t) >= 0.99
@@ -340,8 +341,8 @@ def test_end_to_end_walking_accuracy(assets_dir):
 def test_soft_rays_average_the_noise(assets_dir):
     """At 5 px the hard-ray solve carries all the noise; the soft-ray sweeps must relax it well
     below both that solve and the hard-ray oracle. ``soft_iterations=0`` keeps the hard solve."""
-    cap = walking_capture(assets_dir, noise=5.0)
-    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+    cap, truth = walking_capture(assets_dir, noise=5.0)
+    X_true, t = truth.X, truth.t
 
     def error(X):
         return 1000 * np.linalg.norm(X - X_true, axis=2).mean()
@@ -357,8 +358,8 @@ def test_soft_phase_stops_at_the_noise_level(assets_dir):
     """At 1 px the soft sweeps stop once the points' median residual is the noise's (the
     discrepancy principle); running all of them (explicit lambda2) lets W fit the noise. The
     alternation's own X: stream clocks would replace it."""
-    cap = walking_capture(assets_dir, noise=1.0)
-    X_true = cap.extras["X_true"]
+    cap, truth = walking_capture(assets_dir, noise=1.0)
+    X_true = truth.X
     opts = Options(noise_px=1.0, robust_loss="none", stream_clocks=False)
     stopped = reconstruct(cap, opts)
     lambda2 = opts.ray_weight(float(np.median(cap.K[:, 0, 0])))
@@ -372,8 +373,8 @@ def test_soft_phase_stops_at_the_noise_level(assets_dir):
 
 
 def test_missing_points_are_reconstructed(assets_dir):
-    cap = walking_capture(assets_dir, missing=0.3, seed=1)
-    X_true = cap.extras["X_true"]
+    cap, truth = walking_capture(assets_dir, missing=0.3, seed=1)
+    X_true = truth.X
     r = reconstruct(cap, Options())
     e = 1000 * np.linalg.norm(r.X - X_true, axis=2)
     miss = ~cap.visible
@@ -383,10 +384,10 @@ def test_missing_points_are_reconstructed(assets_dir):
 
 def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
     """Two unrelated clips seen by different cameras: two events, each reconstructed alone."""
-    a = simulate(
+    a, truth_a = simulate(
         load_mocap(assets_dir / "mocap" / "walking_1.npz"), SimulationSettings(duration=1.0)
     )
-    b = simulate(
+    b, truth_b = simulate(
         load_mocap(assets_dir / "mocap" / "jumping_1.npz"), SimulationSettings(duration=1.0)
     )
     ia, ib = np.flatnonzero(a.stream < 2), np.flatnonzero(b.stream >= 2)
@@ -397,7 +398,7 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
     cap = Capture(
         x=cat("x"), K=cat("K"), R=cat("R"), C=cat("C"), stream=cat("stream"), frame=cat("frame")
     ).validate()
-    X_true = np.concatenate([a.extras["X_true"][ia], b.extras["X_true"][ib]])
+    X_true = np.concatenate([truth_a.X[ia], truth_b.X[ib]])
     truth = np.r_[np.zeros(ia.size, int), np.ones(ib.size, int)]
     r = reconstruct(cap, Options())
     assert r.events.max() == 1
@@ -407,7 +408,7 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
     assert (r.events[coo.row] == r.events[coo.col]).all()  # no edge between events
     # the order lists one event, then the other, each in time order
     assert (np.diff(r.events[r.order]) != 0).sum() == 1
-    t = np.concatenate([a.extras["t_true"][ia], b.extras["t_true"][ib]])
+    t = np.concatenate([truth_a.t[ia], truth_b.t[ib]])
     for e in (0, 1):
         idx = r.order[r.events[r.order] == e]  # this event's images, in estimated order
         assert kendall_tau(np.arange(idx.size), t[idx]) > 0.98  # 2 cameras, 1 s per event
@@ -417,10 +418,10 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
 def test_lone_photos_without_streams(assets_dir):
     """Crowd photos: every image its own stream (no known order at all), 8 viewpoints."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    cap = simulate(seq, SimulationSettings(duration=1.5, num_streams=8, rate=15))
+    cap, truth = simulate(seq, SimulationSettings(duration=1.5, num_streams=8, rate=15))
     lone = Capture(x=cap.x, K=cap.K, R=cap.R, C=cap.C, stream=np.full(cap.num_images, -1))
     lone.validate()
-    X_true, t = cap.extras["X_true"], cap.extras["t_true"]
+    X_true, t = truth.X, truth.t
     r = reconstruct(lone, Options())
     assert_near_oracle(lone, r.X, X_true, t)
     assert kendall_tau(r.order, t) >= 0.99

@@ -10,53 +10,12 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-import scipy.sparse as sp
-from scenes import look_at
+from scenes import TOY_LAYOUT, F, P, toy_capture
 
 from dloe_sfm import Capture, InputError, Result
 from dloe_sfm import export as export_module
 from dloe_sfm.columns import frame_file_stem
-from dloe_sfm.core.capture import project
 from dloe_sfm.export import export_outputs, reprojection_errors
-from dloe_sfm.keypoints import Layout
-
-N_PER_STREAM, STREAMS, P = 6, 3, 5
-F, W_IMG, H_IMG = 800.0, 640.0, 480.0
-
-
-LAYOUT = Layout("toy", ["head", "neck", "hip", "knee", "foot"], [(0, 1), (1, 2), (2, 3), (3, 4)])
-
-
-def toy_capture() -> tuple[Capture, Result, np.ndarray]:
-    """3 cameras on a ring, 18 images at distinct instants, 5 points moving on a helix."""
-    rng = np.random.default_rng(0)
-    n = N_PER_STREAM * STREAMS
-    t = np.linspace(0.0, 1.0, n)
-    stream = np.arange(n) % STREAMS
-    frame = np.arange(n) // STREAMS
-    offsets = np.array([[0, 0, 1.7], [0, 0, 1.5], [0, 0, 1.0], [0.1, 0, 0.5], [0.1, 0, 0.05]])
-    centre = np.stack([0.5 * np.cos(2 * np.pi * t), 0.5 * np.sin(2 * np.pi * t), 0 * t], axis=1)
-    X = centre[:, None, :] + offsets[None]
-    angle = 2 * np.pi * stream / STREAMS
-    C = np.stack([4 * np.cos(angle), 4 * np.sin(angle), np.full(n, 1.0)], axis=1)
-    R = np.stack([look_at(c, np.array([0.0, 0.0, 1.0])) for c in C])
-    K = np.tile(np.array([[F, 0, W_IMG / 2], [0, F, H_IMG / 2], [0, 0, 1]]), (n, 1, 1))
-    x = project(X, K, R, C)
-    x[4, 2] = np.nan
-    confidence = rng.uniform(0.5, 1.0, (n, P))
-    confidence[4, 2] = 0.0
-    names = np.array([f"cam{s:02d}/{f:04d}.jpg" for s, f in zip(stream, frame, strict=True)])
-    capture = Capture(x=x, K=K, R=R, C=C, stream=stream, frame=frame, confidence=confidence,
-                      image_names=names)
-    order = np.arange(n)[::-1].copy()  # estimated order reversed: rank != index
-    chain = sp.diags(np.ones(n - 1), 1, shape=(n, n), format="csr")
-    result = Result(
-        X=X + 1e-3 * rng.normal(size=X.shape), order=order, A=chain, W=chain, D=np.ones(n),
-        events=(np.arange(n) >= 12).astype(np.int64), embedding=t,
-        cost_history=np.array([2.0, 1.0]), change_history=np.array([0.5, 1e-4]), nit=2,
-        success=True, message="converged", seconds=0.25, timings={"x_step": 0.1},
-    )
-    return capture, result, X
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +23,8 @@ def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
     capture, result, X = toy_capture()
     out = tmp_path_factory.mktemp("export") / "out"
     static_rgb = np.array([[255, 0, 0], [0, 128, 255], [10, 20, 30]], dtype=np.uint8)
-    export_outputs(out, capture, result, static_xyz=X[0, :3], static_rgb=static_rgb, layout=LAYOUT,
+    export_outputs(out, capture, result, static_xyz=X[0, :3], static_rgb=static_rgb,
+                   layout=TOY_LAYOUT,
                    report={"inputs": {"workspace": "synthetic"}, "parameters": {"lambda1": 1e-5}},
                    plots=False)
     return out, capture, result
@@ -97,7 +57,7 @@ def test_skeleton_and_static_clouds(exported) -> None:
     skeletons = sorted((out / "skeleton").glob("*.ply"))
     assert len(skeletons) == capture.num_images
     lines = o3d.io.read_line_set(str(skeletons[0]))
-    np.testing.assert_array_equal(np.asarray(lines.lines), np.array(LAYOUT.edges))
+    np.testing.assert_array_equal(np.asarray(lines.lines), np.array(TOY_LAYOUT.edges))
     np.testing.assert_allclose(np.asarray(lines.points), result.X[result.order[0]], atol=1e-6)
     static = o3d.t.io.read_point_cloud(str(out / "static.ply"))
     np.testing.assert_array_equal(static.point.colors.numpy(), [[255, 0, 0], [0, 128, 255],
@@ -147,7 +107,7 @@ def test_report_fields_and_errors(exported) -> None:
     name = str(capture.image_names[4])
     assert stats["per_image"][name]["count"] == P - 1
     assert stats["per_image"][name]["max"] == pytest.approx(np.nanmax(errors[4]))
-    assert [p["name"] for p in stats["per_point"]] == LAYOUT.point_names
+    assert [p["name"] for p in stats["per_point"]] == TOY_LAYOUT.point_names
     assert stats["per_point"][2]["count"] == capture.num_images - 1
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scenes import openpose_file
 
 from dloe_sfm import colmap
 from dloe_sfm.errors import InputError
@@ -46,13 +47,6 @@ def assert_same(points: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> 
     assert sorted(points) == sorted(truth)
     for name, want in truth.items():
         np.testing.assert_allclose(points[name], want, rtol=0, atol=1e-9, err_msg=name)
-
-
-def openpose_file(path: Path, people: np.ndarray) -> None:
-    flat = [np.nan_to_num(p, nan=0.0).ravel().tolist() for p in people]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"version": 1.3, "people": [
-        {"person_id": [-1], "pose_keypoints_2d": f, "face_keypoints_2d": []} for f in flat]}))
 
 
 def test_openpose_round_trip(ws, truth, tmp_path) -> None:
@@ -315,7 +309,7 @@ def test_build_capture_streams_people_and_scores(ws, tmp_path) -> None:
     small = f"{names[0]},0,1.0,1.0,1.0,1\n{names[0]},1,2.0,2.0,1.0,1\n"
     kp = read_keypoints("csv", projected_csv(ws, tmp_path / "kp.csv", X, names, small),
                         workspace=ws)
-    capture = build_capture(ws, kp, person="largest")
+    capture = build_capture(ws, kp, person="largest").capture
     assert list(capture.image_names) == names
     np.testing.assert_array_equal(capture.stream, [0] * 4 + [1] * 4 + [-1])
     np.testing.assert_array_equal(capture.frame, [0, 1, 2, 3, 0, 1, 2, 3, 0])
@@ -325,14 +319,14 @@ def test_build_capture_streams_people_and_scores(ws, tmp_path) -> None:
     scores = 0.5 + 0.1 * ((np.arange(len(names))[:, None] + np.arange(6)) % 5)
     np.testing.assert_allclose(capture.confidence, scores)
     # min_score drops the low scores; person 1 is the small one
-    capture = build_capture(ws, kp, min_score=0.65, person="largest")
+    capture = build_capture(ws, kp, min_score=0.65, person="largest").capture
     np.testing.assert_array_equal(capture.visible, scores >= 0.65)
     np.testing.assert_array_equal(np.isnan(capture.x[..., 0]), scores < 0.65)
     # person 1 is only in the first image (points p2..p5 left out as observed nowhere): one stream
     with pytest.raises(InputError, match=r"the 1 image\(s\) with keypoints form one stream"):
         build_capture(ws, kp, person=1)
     capture = build_capture(ws, kp, person="largest",
-                            stream_pattern=r"camera0*(?P<stream>\d+)_frame(?P<frame>\d+)")
+                            stream_pattern=r"camera0*(?P<stream>\d+)_frame(?P<frame>\d+)").capture
     np.testing.assert_array_equal(capture.stream, [0] * 4 + [1] * 4 + [-1])
     with pytest.raises(InputError, match="does not match stream pattern"):
         build_capture(ws, kp, stream_pattern=r"cam(?P<stream>\d)_(?P<frame>\d+)")

@@ -10,8 +10,7 @@ import ezc3d
 import numpy as np
 import pytest
 import scipy.sparse as sp
-from test_export import LAYOUT, toy_capture
-from test_reconstruct_stage import write_openpose
+from scenes import TOY_LAYOUT, toy_capture, write_openpose
 
 import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import Capture, InputError, Result, cli, colmap
@@ -188,14 +187,14 @@ def test_rank_times_between_reference_frames_and_events_not_bridged() -> None:
 def exported(tmp_path_factory) -> tuple[Path, Capture, Result]:
     capture, result, _ = toy_capture()
     out = tmp_path_factory.mktemp("mocap") / "out"
-    export_outputs(out, capture, result, layout=LAYOUT, plots=False)
+    export_outputs(out, capture, result, layout=TOY_LAYOUT, plots=False)
     return out, capture, result
 
 
 def test_export_files_agree_with_the_trajectories(exported) -> None:
     out, capture, result = exported
     trc = check_trc_and_c3d(out / "trajectories.trc", out / "trajectories.c3d",
-                            LAYOUT.point_names)
+                            TOY_LAYOUT.point_names)
     with open(out / "sequence.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     order = result.order
@@ -224,7 +223,7 @@ def test_wide_csv_round_trip(exported) -> None:
         header = next(reader)
         rows = list(reader)
     assert header == ["rank", "image", "event", "stream", "frame", "time",
-                      *(f"{n}_{a}" for n in LAYOUT.point_names for a in "xyz")]
+                      *(f"{n}_{a}" for n in TOY_LAYOUT.point_names for a in "xyz")]
     order = result.order
     assert [int(r[0]) for r in rows] == list(range(len(order)))
     assert [r[1] for r in rows] == capture.image_names[order].tolist()
@@ -254,14 +253,14 @@ def test_export_rate_is_checked_and_used(tmp_path) -> None:
     for k, bad in enumerate((0.0, np.nan, 1e9)):  # 1e9: a grid of 1.8e10 samples
         (tmp_path / str(k)).mkdir()
         with pytest.raises(InputError, match="--export-rate"):
-            write_outputs(tmp_path / str(k), capture, result, layout=LAYOUT, export_rate=bad)
+            write_outputs(tmp_path / str(k), capture, result, layout=TOY_LAYOUT, export_rate=bad)
     for bad in ("-1", "0", "nan", "fast"):
         with pytest.raises(SystemExit) as exit_info:
             cli.main(["reconstruct", str(tmp_path), "--format", "csv", "--out",
                       str(tmp_path / "o"), "--export-rate", bad])
         assert exit_info.value.code == 2
     (tmp_path / "ok").mkdir()
-    report = write_outputs(tmp_path / "ok", capture, result, layout=LAYOUT, export_rate=2.5)
+    report = write_outputs(tmp_path / "ok", capture, result, layout=TOY_LAYOUT, export_rate=2.5)
     trc = read_trc(tmp_path / "ok" / "trajectories.trc")
     assert float(trc["header"]["DataRate"]) == report["mocap_export"]["rate"] == 2.5
 

@@ -12,9 +12,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import scipy.sparse as sp
-from test_export import toy_capture
-from test_keypoints import openpose_file
-from test_reconstruct_stage import body_at
+from scenes import body_at, openpose_file, toy_capture
 
 import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import Capture, InputError, Result, colmap
@@ -81,7 +79,7 @@ def test_all_keeps_every_usable_detection(ws, tmp_path) -> None:
         people = [np.array(p["pose_keypoints_2d"]).reshape(18, 3) for p in json.load(f)["people"]]
     openpose_file(folder / f"{Path(last).stem}_keypoints.json", np.stack([*people, fragment]))
     kp = read_keypoints("openpose", folder, workspace=ws)
-    capture = build_capture(ws, kp, person="all")
+    capture = build_capture(ws, kp, person="all").capture
     assert capture.x.shape == (40, 2, 18, 2) and capture.num_people == 2
     assert capture.confidence.shape == (40, 2, 18)
     np.testing.assert_array_equal(capture.symmetric_pairs, LAYOUT.symmetric_pairs)
@@ -101,18 +99,18 @@ def test_all_keeps_every_usable_detection(ws, tmp_path) -> None:
 def test_a_point_nobody_shows_is_left_out(ws, tmp_path) -> None:
     folder = write_people(tmp_path / "openpose", ws, dict.fromkeys(ws.image_names, 2))
     kp = read_keypoints("openpose", folder, workspace=ws)
-    full = build_capture(ws, kp, person="all")
+    full = build_capture(ws, kp, person="all").capture
     for people in kp.points.values():
         people[:, 16] = (np.nan, np.nan, 0.0)
-    capture = build_capture(ws, kp, person="all")
-    assert capture.extras["unobserved_points"] == [16]
+    capture, _, unobserved = build_capture(ws, kp, person="all")
+    assert unobserved == [16]
     kept = [j for j in range(kp.num_points) if j != 16]
     # the same detections, less REar (their slot order may differ: it is by detection size)
     for got, want in zip(capture.x, full.x[:, :, kept], strict=True):
         rows = [sorted(map(tuple, np.nan_to_num(a, nan=-1).reshape(len(a), -1)))
                 for a in (got, want)]
         assert rows[0] == rows[1]
-    layout = observed_layout(kp.layout, capture.extras["unobserved_points"])
+    layout = observed_layout(kp.layout, unobserved)
     assert layout.point_names == [kp.layout.point_names[j] for j in kept]
     assert "REar" not in layout.point_names
     # edges and left/right pairs renumbered: the same named pairs, minus those of REar
@@ -139,8 +137,8 @@ def test_a_point_nobody_shows_is_left_out(ws, tmp_path) -> None:
 def test_auto_follows_everyone_when_people_recur(ws, tmp_path, second, mode) -> None:
     counts = {name: 1 + (k < second) for k, name in enumerate(ws.image_names)}
     kp = read_keypoints("openpose", write_people(tmp_path / "op", ws, counts), workspace=ws)
-    capture = build_capture(ws, kp)
-    chosen = build_capture(ws, kp, person=mode)
+    capture = build_capture(ws, kp).capture
+    chosen = build_capture(ws, kp, person=mode).capture
     np.testing.assert_array_equal(capture.x, chosen.x)
     assert capture.x.ndim == (4 if mode == "all" else 3)
 
@@ -273,7 +271,7 @@ def test_stage_exports_people_of_a_workspace(ws, tmp_path) -> None:
     """The stage's export and plots (overlays included) from a 4-D workspace capture."""
     folder = write_people(tmp_path / "openpose", ws, dict.fromkeys(ws.image_names, 2))
     kp = read_keypoints("openpose", folder, workspace=ws)
-    capture = build_capture(ws, kp)
+    capture = build_capture(ws, kp).capture
     n, p = capture.num_images, LAYOUT.num_points
     truth = bodies(ws)
     X = np.stack([truth[name] for name in capture.image_names]).reshape(n, 2 * p, 3)
@@ -310,4 +308,4 @@ def test_stage_exports_people_of_a_workspace(ws, tmp_path) -> None:
         want = [np.argmin([np.abs(ws.project(name, person) - 0.5 - q).max()
                            for person in truth[name]]) for q in people]
         np.testing.assert_array_equal(detection_subject[i], want)
-    assert (capture.extras["detection_index"] != np.arange(2)).any()  # some were reordered
+    assert (capture.image_ids["detection_index"] != np.arange(2)).any()  # some were reordered

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_export import toy_capture
+from scenes import toy_capture
 
 from dloe_sfm import cli
 from dloe_sfm.io import MARKER, save_capture

@@ -79,12 +79,13 @@ def through(fmt: str, path: Path, ws: colmap.Workspace, person, **options) -> Ke
     if kp is None:
         return None
     check_keypoints(kp)
-    capture = outcome(lambda: build_capture(ws, kp, person=person))
-    if capture is not None:
+    observations = outcome(lambda: build_capture(ws, kp, person=person))
+    if observations is not None:
+        capture, skipped, unobserved = observations
         capture.validate()
-        assert capture.num_points + len(capture.extras["unobserved_points"]) == kp.num_points
+        assert capture.num_points + len(unobserved) == kp.num_points
         assert set(capture.image_names) <= set(ws.image_names)
-        assert not set(capture.extras["skipped_images"]) & set(capture.image_names)
+        assert not set(skipped) & set(capture.image_names)
     return kp
 
 
@@ -542,11 +543,11 @@ def test_images_without_detections_are_skipped_and_listed(ws, tmp_path, caplog) 
     logger = logging.getLogger("dloe_sfm")  # may not propagate to caplog's root handler
     logger.addHandler(caplog.handler)
     try:
-        capture = build_capture(ws, kp, min_score=0.5)
+        capture, skipped_images, _ = build_capture(ws, kp, min_score=0.5)
     finally:
         logger.removeHandler(caplog.handler)
     skipped = sorted([*nobody, low])
-    assert sorted(capture.extras["skipped_images"]) == skipped
+    assert sorted(skipped_images) == skipped
     assert sorted(capture.image_names) == sorted(set(ws.image_names) - set(skipped))
     # one record (seen once or twice: by our handler and by the root's when it propagates)
     warnings = list({r for r in caplog.records if r.levelno == logging.WARNING})
@@ -563,7 +564,7 @@ def test_person_index_beyond_every_image(ws, tmp_path) -> None:
     folder = projected_openpose(ws, tmp_path, ws.static_xyz[:5], dict.fromkeys(two, 2))
     kp = read_keypoints("openpose", folder, workspace=ws)
     # images with fewer detections than the index are left out
-    assert list(build_capture(ws, kp, person=1).image_names) == two
+    assert list(build_capture(ws, kp, person=1).capture.image_names) == two
     one_line_error(lambda: build_capture(ws, kp, person=10_000_000),
                    r"person index 10000000: no image holds more than 2 detection\(s\)")
 
@@ -575,7 +576,7 @@ def test_absurd_pixels_are_not_observations(ws, tmp_path) -> None:
     doc = json.loads((folder / f"{Path(name).stem}_keypoints.json").read_text())
     doc["people"][0]["pose_keypoints_2d"][0:2] = [1e308, -1e308]
     (folder / f"{Path(name).stem}_keypoints.json").write_text(json.dumps(doc))
-    capture = build_capture(ws, read_keypoints("openpose", folder, workspace=ws))
+    capture = build_capture(ws, read_keypoints("openpose", folder, workspace=ws)).capture
     i = list(capture.image_names).index(name)
     assert np.isnan(capture.x[i, 0]).all() and np.isfinite(capture.x[i, 1:]).all()
     assert np.isfinite(capture.x[np.arange(capture.num_images) != i]).all()

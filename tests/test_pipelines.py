@@ -11,7 +11,7 @@ from types import ModuleType
 import numpy as np
 import open3d as o3d
 import pytest
-from test_reconstruct_stage import body_at
+from scenes import body_at
 
 from dloe_sfm import colmap
 

@@ -10,6 +10,7 @@ import re
 import shutil
 import struct
 import zipfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +23,18 @@ import dloe_sfm
 from dloe_sfm import colmap
 from dloe_sfm.core.capture import Capture, memory_estimate
 from dloe_sfm.errors import InputError
-from dloe_sfm.evaluate import main as evaluate_main
-from dloe_sfm.io import load_capture, load_result, read_mocap, save_capture, save_result
+from dloe_sfm.io import (
+    load_capture,
+    load_result,
+    load_truth,
+    read_mocap,
+    save_capture,
+    save_result,
+)
 from dloe_sfm.resources import check_solve_memory
+from dloe_sfm.stages.evaluate import main as evaluate_main
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+from dloe_sfm.truth import GroundTruth, Simulated
 
 FUZZ = settings(max_examples=60, deadline=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -41,22 +50,32 @@ def one_line_error(call) -> object | None:
 
 
 @pytest.fixture(scope="module")
-def capture(assets_dir) -> Capture:
+def simulated(assets_dir) -> Simulated:
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     return simulate(seq, SimulationSettings(duration=0.5, rate=10.0, num_streams=3))
 
 
 @pytest.fixture(scope="module")
-def capture_bytes(capture, tmp_path_factory) -> bytes:
+def capture(simulated) -> Capture:
+    return simulated.capture
+
+
+@pytest.fixture(scope="module")
+def truth(simulated) -> GroundTruth:
+    return simulated.truth
+
+
+@pytest.fixture(scope="module")
+def capture_bytes(capture, truth, tmp_path_factory) -> bytes:
     path = tmp_path_factory.mktemp("cap") / "capture.npz"
-    save_capture(path, capture)
+    save_capture(path, capture, truth)
     return path.read_bytes()
 
 
-def arrays_of(capture: Capture) -> dict[str, np.ndarray]:
+def arrays_of(capture: Capture, truth: GroundTruth) -> dict[str, np.ndarray]:
     return {"x": capture.x, "K": capture.K, "R": capture.R, "C": capture.C,
             "stream": capture.stream, "frame": capture.frame,
-            "image_names": capture.image_names, **capture.extras}
+            "image_names": capture.image_names, **truth.arrays()}
 
 
 def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> Path:
@@ -136,9 +155,10 @@ DTYPES = (np.float64, np.float32, np.int64, np.uint8, bool, np.complex128, "U5",
 
 @FUZZ
 @given(data=st.data())
-def test_random_fields(capture, tmp_path, data) -> None:
-    """A field of random shape, dtype and values (NaN, inf, huge): a valid capture or one line."""
-    arrays = arrays_of(capture)
+def test_random_fields(capture, truth, tmp_path, data) -> None:
+    """A field of random shape, dtype and values (NaN, inf, huge): a valid capture and truth or
+    one line."""
+    arrays = arrays_of(capture, truth)
     key = data.draw(st.sampled_from(FIELDS))
     n = capture.num_images
     shape = tuple(data.draw(st.lists(st.sampled_from([0, 1, 2, 3, n, 28]), max_size=4)))
@@ -159,23 +179,25 @@ def test_random_fields(capture, tmp_path, data) -> None:
     path = tmp_path / "capture.npz"
     with open(path, "wb") as f:
         np.savez(f, **arrays)  # allow_pickle: object arrays get written
-    result = one_line_error(lambda: load_capture(path))
-    assert result is None or isinstance(result, Capture)
+    result = one_line_error(lambda: (load_capture(path), load_truth(path)))
+    assert result is None or (
+        isinstance(result[0], Capture) and isinstance(result[1], GroundTruth)
+    )
 
 
 # --- capture files: sizes a file only claims ---
 
-def test_lying_header_is_refused_before_allocation(capture, tmp_path, reads) -> None:
-    path = npz_with_header(tmp_path / "c.npz", arrays_of(capture), "x", (10**6, 10**6, 2),
+def test_lying_header_is_refused_before_allocation(capture, truth, tmp_path, reads) -> None:
+    path = npz_with_header(tmp_path / "c.npz", arrays_of(capture, truth), "x", (10**6, 10**6, 2),
                            bytes(800))
     with pytest.raises(InputError, match=r"c.npz: key 'x' declares shape \(1000000, 1000000, 2\)"):
         load_capture(path)
     assert reads == []  # nothing decompressed, so nothing allocated
 
 
-def test_lying_zip_directory_is_refused(capture, tmp_path, reads) -> None:
+def test_lying_zip_directory_is_refused(capture, truth, tmp_path, reads) -> None:
     """The zip directory claims 16 TB uncompressed for 'x' (consistent with its .npy header)."""
-    arrays = arrays_of(capture)
+    arrays = arrays_of(capture, truth)
     path = npz_with_header(tmp_path / "c.npz", arrays, "x", (10**6, 10**6, 2), bytes(800))
     raw = bytearray(path.read_bytes())
     entry = raw.find(b"PK\x01\x02")
@@ -190,17 +212,19 @@ def test_lying_zip_directory_is_refused(capture, tmp_path, reads) -> None:
     assert all(np.prod(s) <= capture.x.size * 2 for s in reads)
 
 
-def test_large_unread_key_is_never_decompressed(capture, tmp_path, reads) -> None:
-    arrays = {**arrays_of(capture), "junk": np.zeros(2**23)}  # 64 MB in ~64 KB
-    loaded = load_capture(write_npz(tmp_path / "c.npz", arrays))
-    assert "junk" not in loaded.extras and (2**23,) not in reads
-    assert np.array_equal(loaded.extras["X_true"], capture.extras["X_true"])
+def test_large_unread_key_is_never_decompressed(capture, truth, tmp_path, reads) -> None:
+    arrays = {**arrays_of(capture, truth), "junk": np.zeros(2**23)}  # 64 MB in ~64 KB
+    path = write_npz(tmp_path / "c.npz", arrays)
+    load_capture(path)
+    loaded = load_truth(path)
+    assert (2**23,) not in reads
+    assert np.array_equal(loaded.X, truth.X) and np.array_equal(loaded.t, truth.t)
 
 
-def test_truth_larger_than_the_capture_is_refused(capture, tmp_path, reads) -> None:
-    arrays = {**arrays_of(capture), "X_true": np.zeros((capture.num_images, 50_000, 3))}
+def test_truth_larger_than_the_capture_is_refused(capture, truth, tmp_path, reads) -> None:
+    arrays = {**arrays_of(capture, truth), "X_true": np.zeros((capture.num_images, 50_000, 3))}
     with pytest.raises(InputError, match="key 'X_true' declares shape"):
-        load_capture(write_npz(tmp_path / "c.npz", arrays))
+        load_truth(write_npz(tmp_path / "c.npz", arrays))
     assert reads == []
 
 
@@ -222,8 +246,8 @@ def test_unreadable_npz_is_one_line(capture_bytes, tmp_path, damage) -> None:
     assert "pickle" not in str(e.value) and "\n" not in str(e.value)
 
 
-def test_object_arrays_are_refused(capture, tmp_path) -> None:
-    arrays = {**arrays_of(capture), "K": np.array([None] * 3, dtype=object)}
+def test_object_arrays_are_refused(capture, truth, tmp_path) -> None:
+    arrays = {**arrays_of(capture, truth), "K": np.array([None] * 3, dtype=object)}
     path = tmp_path / "c.npz"
     with open(path, "wb") as f:
         np.savez(f, **arrays)
@@ -232,6 +256,20 @@ def test_object_arrays_are_refused(capture, tmp_path) -> None:
 
 
 # --- capture values (Capture.validate) ---
+
+def test_image_ids_follow_the_images(capture, truth) -> None:
+    n = capture.num_images
+    ids = {"detection_index": np.arange(n)[:, None].repeat(2, axis=1)}
+    with_ids = replace(capture, image_ids=ids).validate()
+    idx = np.flatnonzero(capture.stream != 1)
+    part, part_truth = with_ids.subset(idx), truth.subset(idx)
+    np.testing.assert_array_equal(part.image_ids["detection_index"][:, 0], idx)
+    assert part_truth.X.shape[0] == part_truth.t.size == part.num_images
+    np.testing.assert_array_equal(part_truth.x_clean, truth.x_clean[idx])
+    assert part_truth.parents is truth.parents
+    with pytest.raises(InputError, match="image ids 'colmap_frame_id' must have one entry per"):
+        replace(capture, image_ids={"colmap_frame_id": np.arange(n - 1)}).validate()
+
 
 def test_negative_focal_length_is_refused(capture) -> None:
     K = capture.K.copy()
@@ -295,10 +333,11 @@ def test_memory_estimate_and_check(capture, monkeypatch) -> None:
 # --- result / evaluate / simulate inputs ---
 
 @pytest.fixture(scope="module")
-def solved(capture, tmp_path_factory) -> tuple[Path, Path]:
+def solved(capture, truth, tmp_path_factory) -> tuple[Path, Path]:
     folder = tmp_path_factory.mktemp("solved")
     result = dloe_sfm.reconstruct(capture, dloe_sfm.Options(max_iterations=10))
-    return save_capture(folder / "cap.npz", capture), save_result(folder / "res.npz", result)
+    return save_capture(folder / "cap.npz", capture, truth), save_result(folder / "res.npz",
+                                                                         result)
 
 
 def test_evaluate_rejects_bad_inputs(solved, tmp_path) -> None:
@@ -317,7 +356,7 @@ def test_evaluate_rejects_bad_inputs(solved, tmp_path) -> None:
             np.savez(f, **{**arrays, key: value})
         with pytest.raises(InputError, match=message):
             evaluate_main(bad, cap, references=False)
-        assert load_result(res)["X"].shape == arrays["X"].shape
+        assert load_result(res).X.shape == arrays["X"].shape
     with np.load(cap) as d:
         truth = {k: d[k] for k in d.files}
     for key, value, message in (("t_true", np.zeros(3), "'t_true' must be finite, shape"),

@@ -11,59 +11,12 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from scenes import COCO_LAYOUT, NUM_CAMERAS, NUM_FRAMES, image_time, write_openpose
 
 import dloe_sfm
 import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import cli, colmap
 from dloe_sfm.core.solver import reconstruct as solver
-from dloe_sfm.keypoints.base import LAYOUTS
-
-NUM_CAMERAS, NUM_FRAMES = 4, 15  # 60 images, each at an instant of its own
-LAYOUT = LAYOUTS["COCO_18"]
-# a stick figure in COCO_18 order (x right, y forward, z up; model units, about 0.9 tall)
-BODY = np.array([
-    [0.0, 0.05, 0.85], [0.0, 0.0, 0.75], [-0.15, 0.0, 0.73], [-0.2, 0.0, 0.55], [-0.22, 0.05, 0.4],
-    [0.15, 0.0, 0.73], [0.2, 0.0, 0.55], [0.22, 0.05, 0.4], [-0.1, 0.0, 0.4], [-0.1, 0.02, 0.2],
-    [-0.1, 0.0, 0.0], [0.1, 0.0, 0.4], [0.1, 0.02, 0.2], [0.1, 0.0, 0.0], [-0.03, 0.08, 0.88],
-    [0.03, 0.08, 0.88], [-0.07, 0.04, 0.86], [0.07, 0.04, 0.86],
-])
-ARMS = [3, 4, 6, 7]
-
-
-def body_at(t: float) -> np.ndarray:
-    """(18, 3) joints at time t in [0, 1]: walking on an arc, turning, swinging its arms."""
-    pose = BODY.copy()
-    swing = 0.5 * np.sin(2 * np.pi * t)
-    for j, sign in zip(ARMS, (1, 1, -1, -1), strict=True):
-        d = pose[j] - pose[2 if j < 5 else 5]
-        c, s = np.cos(sign * swing), np.sin(sign * swing)
-        pose[j] = pose[2 if j < 5 else 5] + [d[0], c * d[1] - s * d[2], s * d[1] + c * d[2]]
-    turn = 0.8 * t
-    Rz = np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
-    centre = np.array([0.3 * np.cos(np.pi * t), 0.3 * np.sin(np.pi * t), -0.45])
-    return pose @ Rz.T + centre
-
-
-def image_time(name: str) -> float:
-    """Instant of a synthetic image: camera c's frame f is taken at (NUM_CAMERAS f + c) / N."""
-    cam, frame = map(int, re.match(r"camera(\d+)_frame(\d+)", name).groups())
-    return (NUM_CAMERAS * frame + cam - 1) / (NUM_CAMERAS * NUM_FRAMES - 1)
-
-
-def write_openpose(folder: Path, ws: colmap.Workspace) -> dict[str, np.ndarray]:
-    """One OpenPose file per image (pixel convention (0, 0)); returns the true (18, 3) joints."""
-    folder.mkdir()
-    truth = {}
-    for name in ws.image_names:
-        X = body_at(image_time(name))
-        uv = ws.project(name, X) - 0.5  # COLMAP (0.5, 0.5) -> OpenPose (0, 0)
-        w, h = ws.image_size(name)
-        assert np.isfinite(uv).all() and (uv > 0).all() and (uv < [w, h]).all(), name
-        values = np.concatenate([uv, np.ones((len(uv), 1))], axis=1).ravel().tolist()
-        data = {"version": 1.3, "people": [{"pose_keypoints_2d": values}]}
-        (folder / f"{Path(name).stem}_keypoints.json").write_text(json.dumps(data))
-        truth[name] = X
-    return truth
 
 
 @pytest.fixture(scope="module")
@@ -152,11 +105,11 @@ def test_a_point_no_image_observes_is_left_out_and_reported(scene, reconstructed
         (folder / file.name).write_text(json.dumps(data))
     out = stage.main(workspace, folder, "openpose", tmp_path / "out", plots=False)
     report = json.loads((out / "report.json").read_text())
-    assert report["inputs"]["unobserved_points"] == [LAYOUT.point_names[0]]
+    assert report["inputs"]["unobserved_points"] == [COCO_LAYOUT.point_names[0]]
     with np.load(out / "trajectories.npz") as got, \
             np.load(reconstructed / "trajectories.npz") as full:
-        assert list(got["point_names"]) == LAYOUT.point_names[1:]
-        assert got["X"].shape == (full["X"].shape[0], len(LAYOUT.point_names) - 1, 3)
+        assert list(got["point_names"]) == COCO_LAYOUT.point_names[1:]
+        assert got["X"].shape == (full["X"].shape[0], len(COCO_LAYOUT.point_names) - 1, 3)
         # the other points as without the change, to the solver's accuracy
         assert np.abs(got["X"] - full["X"][:, 1:]).max() < 0.05
 
@@ -183,9 +136,9 @@ def test_cli_matches_python_and_leaves_the_model_alone(scene, reconstructed, tmp
     before = model_snapshot(workspace)
     out = tmp_path / "cli"
     layout = tmp_path / "coco.json"  # COCO_18 under another name: a custom layout file
-    layout.write_text(json.dumps({"name": "mine", "point_names": LAYOUT.point_names,
-                                  "edges": LAYOUT.edges,
-                                  "symmetric_pairs": LAYOUT.symmetric_pairs}))
+    layout.write_text(json.dumps({"name": "mine", "point_names": COCO_LAYOUT.point_names,
+                                  "edges": COCO_LAYOUT.edges,
+                                  "symmetric_pairs": COCO_LAYOUT.symmetric_pairs}))
     proc = subprocess.run(
         [sys.executable, "-m", "dloe_sfm", "reconstruct", str(workspace), "--keypoints",
          str(keypoints), "--format", "openpose", "--out", str(out), "--no-plots",

@@ -20,6 +20,7 @@ from dloe_sfm.synth.scenarios import (
     simulate_people,
     swap_symmetric,
 )
+from dloe_sfm.truth import GroundTruth
 
 MOTIONS = ("walking_1", "jumping_1", "basketball_signal_1")
 QUICK = SimulationSettings(duration=1.0, rate=15)
@@ -36,11 +37,12 @@ def error_mm(X, X_true):
 
 @pytest.fixture(scope="module")
 def walking(clips):
-    """One person, 1 s at 4 x 30 Hz, and its clean solve."""
-    cap = simulate_people([clips["walking_1"]], SimulationSettings(duration=1.0), shuffle=False)
-    cap = Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
-                  extras={"X_true": cap.extras["X_true"][:, 0]})
-    return cap, error_mm(reconstruct(cap).X, cap.extras["X_true"])
+    """One person, 1 s at 4 x 30 Hz, its truth and the error of its clean solve."""
+    cap, truth = simulate_people([clips["walking_1"]], SimulationSettings(duration=1.0),
+                                 shuffle=False)
+    cap = Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame)
+    truth = GroundTruth(X=truth.X[:, 0], t=truth.t)
+    return cap, truth, error_mm(reconstruct(cap).X, truth.X)
 
 
 def test_stream_runs_cut_where_a_video_stops():
@@ -111,17 +113,17 @@ def test_loss_weights():
 
 def test_find_swaps_on_an_exact_prediction(rng, clips):
     seq = clips["walking_1"]
-    cap = simulate_people([seq], QUICK, shuffle=False)
-    X = cap.extras["X_true"][:, 0]
+    cap, sim = simulate_people([seq], QUICK, shuffle=False)
+    X = sim.X[:, 0]
     x = project(X, cap.K, cap.R, cap.C)
     clean = Capture(x=x, K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame)
     pairs = symmetric_pairs(seq.parents)
-    bad = swap_symmetric(clean, pairs, 0.2, seed=1)
+    bad, sim = swap_symmetric(clean, GroundTruth(X=X, t=sim.t), pairs, 0.2, seed=1)
     found = find_swaps(bad, X, pairs, np.full(clean.num_points, 3.0))
-    hit = np.zeros_like(bad.extras["swap_true"])
+    truth = sim.swaps
+    hit = np.zeros_like(truth)
     for n, a, _ in found:
         hit[n, np.flatnonzero(pairs[:, 0] == a)] = True
-    truth = bad.extras["swap_true"]
     # a swap of two points that project within a few pixels of each other is harmless and kept
     close = np.linalg.norm(x[:, pairs[:, 0]] - x[:, pairs[:, 1]], axis=2) < 5
     assert not (hit & ~truth).any()
@@ -131,9 +133,9 @@ def test_find_swaps_on_an_exact_prediction(rng, clips):
 @pytest.mark.slow
 def test_three_events_in_the_same_streams(clips):
     seqs = [clips[m] for m in MOTIONS]
-    cap = simulate_events(seqs, QUICK)
+    cap, sim = simulate_events(seqs, QUICK)
     r = reconstruct(cap)
-    truth = cap.extras["event_true"]
+    truth = sim.events
     assert np.unique(r.events).size == 3
     for e in np.unique(r.events):
         assert np.unique(truth[r.events == e]).size == 1
@@ -142,9 +144,7 @@ def test_three_events_in_the_same_streams(clips):
     assert (truth[A.row] == truth[A.col]).all()
     first = np.flatnonzero(truth == 0)
     alone = reconstruct(cap.subset(first))
-    assert error_mm(r.X[first], cap.extras["X_true"][first]) <= 1.2 * error_mm(
-        alone.X, cap.extras["X_true"][first]
-    )
+    assert error_mm(r.X[first], sim.X[first]) <= 1.2 * error_mm(alone.X, sim.X[first])
 
 
 @pytest.mark.slow
@@ -153,8 +153,8 @@ def test_two_people_are_associated_and_reconstructed(clips):
     their solo solve. Stream clocks fitted on the aggregated capture then help both people
     (walking 1.9 -> 1.1 mm, jumping 0.21 -> 0.19)."""
     seqs = [clips["walking_1"], clips["jumping_1"]]
-    cap = simulate_people(seqs, QUICK)
-    truth = cap.extras["subject_true"]
+    cap, sim = simulate_people(seqs, QUICK)
+    truth = sim.subjects
     assert (truth[:, 0] == 1).any() and (truth[:, 0] == 0).any()  # the order really is shuffled
     plain = Options(stream_clocks="off")
     r = reconstruct(cap, plain)
@@ -170,25 +170,25 @@ def test_two_people_are_associated_and_reconstructed(clips):
         person = perm[k]
         alone = Capture(x=cap.x[np.arange(cap.num_images), slot_of[:, person]], K=cap.K,
                         R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame)
-        solo = error_mm(reconstruct(alone, plain).X, cap.extras["X_true"][:, person])
-        together = error_mm(r.X[:, r.subject_id == k], cap.extras["X_true"][:, person])
+        solo = error_mm(reconstruct(alone, plain).X, sim.X[:, person])
+        together = error_mm(r.X[:, r.subject_id == k], sim.X[:, person])
         assert together <= 1.3 * solo
         with_clocks = error_mm(clocked.X[:, clocked.subject_id == clocked_perm.index(person)],
-                               cap.extras["X_true"][:, person])
+                               sim.X[:, person])
         assert with_clocks <= 0.95 * together
         assert np.array_equal(r.point_id[r.subject_id == k], np.arange(cap.num_points))
 
 
 @pytest.mark.slow
 def test_outliers_are_rejected(walking):
-    cap, clean = walking
-    bad = add_outliers(cap, 0.05, seed=1)
-    plain = error_mm(reconstruct(bad, Options(robust_loss="none")).X, cap.extras["X_true"])
+    cap, sim, clean = walking
+    bad, sim = add_outliers(cap, sim, 0.05, seed=1)
+    plain = error_mm(reconstruct(bad, Options(robust_loss="none")).X, sim.X)
     r = reconstruct(bad)
-    robust = error_mm(r.X, cap.extras["X_true"])
+    robust = error_mm(r.X, sim.X)
     assert robust <= 1.25 * clean
     assert plain >= 5 * clean
-    truth = bad.extras["outlier_true"]
+    truth = sim.outliers
     found = np.zeros_like(truth)
     found[tuple(r.outliers.T)] = True
     assert (found & truth).sum() >= 0.95 * truth.sum()
@@ -198,11 +198,11 @@ def test_outliers_are_rejected(walking):
 
 @pytest.mark.slow
 def test_left_right_swaps_are_found(walking, clips):
-    cap, clean = walking
+    cap, sim, clean = walking
     pairs = symmetric_pairs(clips["walking_1"].parents)
-    bad = swap_symmetric(cap, pairs, 0.1, seed=2)
+    bad, sim = swap_symmetric(cap, sim, pairs, 0.1, seed=2)
     r = reconstruct(bad)
-    truth = bad.extras["swap_true"]
+    truth = sim.swaps
     undone = np.zeros(truth.shape, dtype=np.int64)
     for n, a, _ in r.swaps:
         undone[n, np.flatnonzero(pairs[:, 0] == a)] += 1

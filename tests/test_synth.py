@@ -12,6 +12,7 @@ from dloe_sfm.stages import simulate as simulate_stage
 from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
 from dloe_sfm.synth.detector import DetectorModel
 from dloe_sfm.synth.mocap import _interpolate, _ring_radius, _window
+from dloe_sfm.synth.scenarios import simulate_people
 
 RATES = (24.0, 25.0, 29.97, 30.0)
 
@@ -25,14 +26,14 @@ def jumping(assets_dir):
 def test_mixed_rates_sample_every_stream_at_its_own_rate(jumping, random_offsets):
     s = SimulationSettings(rates=RATES, random_offsets=random_offsets, duration=2.0, start=0.5,
                            seed=4)
-    capture = simulate(jumping, s)
+    capture, truth = simulate(jumping, s)
     pos = _window(jumping, s)
     span = (pos.shape[0] - 1) / jumping.fps  # seconds of motion
     first = round(s.start * jumping.fps) / jumping.fps
     starts = []
     for k, rate in enumerate(RATES):
         mine = capture.stream == k
-        t = capture.extras["t_true"][mine] - first
+        t = truth.t[mine] - first
         starts.append(t[0])
         assert np.array_equal(capture.frame[mine], np.arange(mine.sum()))
         np.testing.assert_allclose(np.diff(t), 1 / rate, rtol=1e-9)
@@ -42,15 +43,15 @@ def test_mixed_rates_sample_every_stream_at_its_own_rate(jumping, random_offsets
     if random_offsets:
         assert not np.allclose(starts, [k / (r * 4) for k, r in enumerate(RATES)])
     # the truth is the motion interpolated at the true instants
-    frames = capture.extras["t_true"] * jumping.fps - round(s.start * jumping.fps)
-    np.testing.assert_allclose(capture.extras["X_true"], _interpolate(pos, frames), atol=1e-12)
+    frames = truth.t * jumping.fps - round(s.start * jumping.fps)
+    np.testing.assert_allclose(truth.X, _interpolate(pos, frames), atol=1e-12)
 
 
 def test_default_settings_are_the_staggered_common_rate(jumping):
     """Default settings: 4 x 30 Hz, starts k/4 of a period apart, then Gaussian noise drawn
     first from the seed's generator (the construction every earlier result was made with)."""
     s = SimulationSettings(duration=1.0, noise=1.5, seed=7)
-    capture = simulate(jumping, s)
+    capture, truth = simulate(jumping, s)
     pos = _window(jumping, s)
     period, span = jumping.fps / 30.0, pos.shape[0] - 1
     times = [k * period / 4 + period * np.arange(int(span / period) + 1) for k in range(4)]
@@ -58,14 +59,14 @@ def test_default_settings_are_the_staggered_common_rate(jumping):
     t = np.concatenate(times)
     stream = np.repeat(np.arange(4), [v.size for v in times])
     assert np.array_equal(capture.stream, stream)
-    assert np.array_equal(capture.extras["t_true"], t / jumping.fps)
+    assert np.array_equal(truth.t, t / jumping.fps)
     centre = pos.reshape(-1, 3).mean(axis=0)
     K, R, C = ring_cameras(centre, radius=_ring_radius(s, pos.reshape(-1, 3), centre))
     X = _interpolate(pos, t)
     x_clean = project(X, K[stream], R[stream], C[stream])
     noise = 1.5 * np.random.default_rng(7).standard_normal(x_clean.shape)
     assert np.array_equal(capture.x, x_clean + noise)
-    assert capture.confidence is None and "swap_true" not in capture.extras
+    assert capture.confidence is None and truth.swaps is None and truth.outliers is None
 
 
 def test_detector_model_reproduces_the_fitted_statistics(jumping):
@@ -75,16 +76,15 @@ def test_detector_model_reproduces_the_fitted_statistics(jumping):
     for seed in range(3):
         s = SimulationSettings(detector="openpose", rates=RATES, random_offsets=True, seed=seed,
                                duration=2.0)
-        capture = simulate(jumping, s)
-        x_clean = capture.extras["x_clean"]
+        capture, truth = simulate(jumping, s)
+        x_clean = truth.x_clean
         height = x_clean[..., 1].max(axis=1) - x_clean[..., 1].min(axis=1)
         error = np.linalg.norm(capture.x - x_clean, axis=-1) / height[:, None]
         seen = np.isfinite(error)
         assert np.all((capture.confidence[seen] > 0) & (capture.confidence[seen] <= 1))
         assert np.all(capture.confidence[~seen] == 0)
-        assert capture.extras["swap_true"].shape == (capture.num_images,
-                                                    len(capture.symmetric_pairs))
-        assert capture.extras["outlier_true"][seen].any()
+        assert truth.swaps.shape == (capture.num_images, len(capture.symmetric_pairs))
+        assert truth.outliers[seen].any()
         errors.append(error[seen])
         scores.append(capture.confidence[seen])
         missing.append(~seen)
@@ -123,3 +123,27 @@ def test_cli_flags(jumping, assets_dir, tmp_path):
     assert simulate_stage.run(args) == 0
     with np.load(out) as saved:
         assert {"swap_true", "outlier_true", "confidence"} <= set(saved.files)
+
+
+def test_people_shuffle_keeps_scores_and_truth_with_their_detections(jumping, assets_dir):
+    """With the detector model the confidence and the true outliers / swaps follow the
+    shuffled detection slots (the render before the shuffle is the same either way)."""
+    walking = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    s = SimulationSettings(detector="openpose", duration=0.5, seed=3)
+    (cap, truth), (ref, ref_truth) = (
+        simulate_people([jumping, walking], s, shuffle=shuffle) for shuffle in (True, False)
+    )
+    slots = truth.subjects
+    assert (slots != ref_truth.subjects).any()
+    rows = np.arange(cap.num_images)[:, None]
+    np.testing.assert_array_equal(cap.x, ref.x[rows, slots])
+    np.testing.assert_array_equal(cap.confidence, ref.confidence[rows, slots])
+    for name in ("x_clean", "outliers", "swaps"):
+        np.testing.assert_array_equal(getattr(truth, name), getattr(ref_truth, name)[rows, slots])
+
+
+def test_cli_refuses_swaps_with_the_detector(assets_dir, tmp_path):
+    with pytest.raises(InputError, match="--detector"):
+        simulate_stage.main(assets_dir / "mocap" / "jumping_1.npz", tmp_path / "c.npz",
+                            SimulationSettings(detector="openpose"), swaps=0.1)
+    assert not (tmp_path / "c.npz").exists()

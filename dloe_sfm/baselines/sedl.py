@@ -12,8 +12,9 @@ Simplifications (stated plainly, this is not the authors' code):
 - Symmetry is imposed on the support: the QP is solved a second time over the symmetrised
   neighbourhoods (j may express i whenever i chose j or j chose i). The coefficient *values* are
   not forced to be symmetric: forcing them (symmetric Sinkhorn scaling of ``(C + C^T) / 2``) kept
-  the error at the pseudo-triangulation level on smooth synthetic motion (3.1 mm vs 2.5 mm, against
-  0.2 mm with symmetric support), so this baseline is the stronger of the two readings.
+  the error at the pseudo-triangulation level on smooth synthetic motion, far above symmetric
+  support alone (docs/method.md, "Baselines"), so this baseline is the stronger of the two
+  readings.
 - Partial sequencing enters as in DLOE's intra-stream prior: each row mixes a weight
   ``stream_weight`` of the previous / next frame of the same stream.
 - No dictionary learning beyond the shapes themselves; the alternation stops on a small change

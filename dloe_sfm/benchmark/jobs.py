@@ -39,10 +39,11 @@ from .suites import category
 logger = logging.getLogger("dloe_sfm")
 
 
-def run_method(name: str, capture: Capture, options: Options) -> tuple[np.ndarray, dict]:
-    """Reconstruct ``capture`` with one of :data:`~.suites.METHODS`; returns (X (N, P, 3), extra
-    facts)."""
-    t_true = capture.extras["t_true"]
+def run_method(
+    name: str, capture: Capture, t_true: np.ndarray, options: Options
+) -> tuple[np.ndarray, dict]:
+    """Reconstruct ``capture`` with one of :data:`~.suites.METHODS` (``t_true`` (N,) the true
+    times, for the methods given them and the scores); returns (X (N, P, 3), extra facts)."""
     if name == "pseudo-triangulation":
         return pseudo_triangulation(capture, options), {}
     if name == "TB":
@@ -66,7 +67,7 @@ def run_method(name: str, capture: Capture, options: Options) -> tuple[np.ndarra
 
 def sweep_job(spec: dict) -> list[dict]:
     """Simulate one capture and reconstruct it with every method (or DLOE variant) of ``spec``."""
-    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    capture, truth = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
     # DLOE is told the detector noise, as the paper set lambda2 for its noise experiments
     base = Options(noise_px=spec["settings"].get("noise", 0.0))
     records = []
@@ -77,14 +78,14 @@ def sweep_job(spec: dict) -> list[dict]:
         t0 = time.perf_counter()
         try:
             name = "DLOE" if spec["suite"] == "ablation" else method
-            X, extra = run_method(name, capture, base.replace(**overrides))
+            X, extra = run_method(name, capture, truth.t, base.replace(**overrides))
         except Exception as e:  # one failing method must not sink a long sweep
             logger.warning("%s on %s failed: %s", method, record["motion"], e)
             record["failed"] = f"{type(e).__name__}: {e}"
             records.append(record)
             continue
         record["seconds"] = time.perf_counter() - t0
-        record.update(point_errors(X, capture.extras["X_true"], capture.visible))
+        record.update(point_errors(X, truth.X, capture.visible))
         record.update(extra)
         records.append(record)
     return records
@@ -92,8 +93,8 @@ def sweep_job(spec: dict) -> list[dict]:
 
 def kendall_job(spec: dict) -> list[dict]:
     """|tau| of every (embedding, distance) order on the initial and the DLOE shapes."""
-    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
-    t_true = capture.extras["t_true"]
+    capture, truth = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    t_true = truth.t
     options = Options()
     shapes = {"initial": initialise(capture, options), "optimised": reconstruct(capture, options).X}
     records = []
@@ -120,7 +121,7 @@ def _rss_mb() -> float:
 
 def runtime_job(spec: dict) -> list[dict]:
     """Time one DLOE solve in a fresh process; peak memory before and after the solve."""
-    capture = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
+    capture, truth = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
     before = _rss_mb()
     result = reconstruct(capture, Options())
     t = result.timings
@@ -131,8 +132,7 @@ def runtime_job(spec: dict) -> list[dict]:
              **{f"{k}_per_iteration": t[k] / max(result.nit, 1)
                 for k in ("w_step", "d_step", "x_step")},
              "timings": t, "rss_before_mb": before, "peak_rss_mb": _rss_mb(),
-             "error_mm": point_errors(result.X, capture.extras["X_true"],
-                                      capture.visible)["error_mm"]}]
+             "error_mm": point_errors(result.X, truth.X, capture.visible)["error_mm"]}]
 
 
 @contextmanager

@@ -39,7 +39,7 @@ def run_sfm(
     ``camera_mode``: ``per_folder`` (one camera per sub-folder, i.e. per video stream; the
     default when images sit in sub-folders), ``per_image`` (crowd photos; the default otherwise)
     or ``single``. ``camera_params`` (COLMAP order for ``camera_model``) fixes known intrinsics:
-    they are then not refined (refining them cost 1-5 px of reprojection error on test scenes).
+    they are then not refined (refining them cost accuracy: docs/method.md, "Around the solver").
     ``first_octave`` -1 upsamples the images for SIFT (more matches across wide baselines, slower);
     ``num_threads`` -1 uses every core; ``seed`` (COLMAP's ``random_seed``) makes the mapping
     repeatable. The workspace is built in a temporary sibling and renamed when complete.

@@ -13,10 +13,11 @@ import scipy.sparse as sp
 
 from .capture import Capture
 from .events import segment_events
-from .options import Distance, Embedding, Options
+from .noise import estimate_noise_px
+from .options import AUTO, Distance, Embedding, Options
 from .problem import Normalised, initialise, normalise
 from .result import Result
-from .robust import residuals_px
+from .robust import predicted, residuals_px
 from .sequencing import (
     affine_time,
     distance_matrix,
@@ -204,7 +205,8 @@ def solve_event(
     progress: Progress | None = None,
 ) -> Result:
     """One event: init (unless given), alternation (hard rays, then soft ones with a finite ray
-    weight), sequencing. Returns a :class:`Result` in world units."""
+    weight; ``noise_px`` = ``auto`` is estimated from the hard-ray solution), sequencing.
+    Returns a :class:`Result` in world units."""
     t_start = time.perf_counter()
     if X_world is None:
         X_world = initialise(capture, options)
@@ -215,8 +217,8 @@ def solve_event(
     t0 = time.perf_counter()
     prior_f, f = sequence(X, prob, capture.frame, options)
     sequencing_seconds = time.perf_counter() - t0
-    lambda2 = soft_ray_weight(capture, options)
-    soft = np.isfinite(lambda2)
+    auto = options.noise_px == AUTO
+    soft = auto or np.isfinite(soft_ray_weight(capture, options))
     st = Search(X=X, D=degrees(f, prob, options), prior_f=prior_f, f=f, progress=progress,
                 total=options.max_iterations + (options.soft_iterations if soft else 0))
     st.timings["init"] = init_seconds
@@ -225,7 +227,12 @@ def solve_event(
     # settle W first; the soft phase then only refines
     success, message = alternate(st, prob, capture.frame, options,
                                  Phase(np.inf, options.max_iterations))
-    if soft:
+    if auto:
+        X_pred = predicted(st.best.W, norm.to_world(st.best.X))
+        options = options.replace(noise_px=estimate_noise_px(residuals_px(capture, X_pred)))
+        logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
+    lambda2 = soft_ray_weight(capture, options)
+    if np.isfinite(lambda2):
         st.X = st.best.X.copy()
         success, message = alternate(
             st, prob, capture.frame, options,
@@ -254,6 +261,7 @@ def solve_event(
         seconds=time.perf_counter() - t_start,
         timings=st.timings,
         scale=norm.scale,
+        noise_px=float(options.noise_px),
     )
 
 
@@ -276,7 +284,7 @@ def discrepancy(
     The first soft sweep moves the points off the noisy rays to where the hard-ray graph puts
     them, often farther from their detections than the noise; as W settles they come back.
     Once they are as far as the noise itself, more sweeps only fit W to the noise, while a noisy
-    start needs tens of them (docs/method.md has the measurements).
+    start needs tens of them (docs/method.md, "Departures from the paper", noisy detections).
     """
     if options.lambda2 is not None:
         return None

@@ -67,7 +67,7 @@ class Capture:
     then associates the detections into subjects (``core.multitarget``).
 
     Projection: ``x ~ K R (X - C)`` with no half-pixel offset: pixels mean what ``K`` makes
-    them (docs/interfaces.md, capture file).
+    them (docs/interfaces.md, "Capture file").
 
     Attributes
     ----------
@@ -88,6 +88,9 @@ class Capture:
     image_names : (N,) str
     symmetric_pairs : (K, 2) int or None
         Left/right point pairs (e.g. shoulders) a detector may swap; the solver checks them.
+    image_ids : dict of str to (N, ...) int
+        Per-image ids passed through the solver untouched (``observations.build_capture``:
+        ``detection_index``, ``colmap_frame_id``); restricted by :meth:`subset` like the fields.
     """
 
     x: np.ndarray
@@ -99,7 +102,7 @@ class Capture:
     confidence: np.ndarray | None = None
     image_names: np.ndarray | None = None
     symmetric_pairs: np.ndarray | None = None
-    extras: dict = field(default_factory=dict)
+    image_ids: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.x = np.asarray(self.x, dtype=np.float64)
@@ -120,6 +123,7 @@ class Capture:
         self.image_names = np.asarray(self.image_names).astype(str)
         if self.symmetric_pairs is not None:
             self.symmetric_pairs = np.asarray(self.symmetric_pairs).astype(np.int64).reshape(-1, 2)
+        self.image_ids = {k: np.asarray(v) for k, v in self.image_ids.items()}
 
     @property
     def num_images(self) -> int:
@@ -157,6 +161,12 @@ class Capture:
             if arr is not None and arr.shape != shapes[name]:
                 raise InputError(
                     f"{source}: field '{name}' must have shape {shapes[name]}, got {arr.shape}"
+                )
+        for name, arr in self.image_ids.items():
+            if arr.ndim < 1 or arr.shape[0] != n:
+                raise InputError(
+                    f"{source}: image ids '{name}' must have one entry per image ({n}), got "
+                    f"shape {arr.shape}"
                 )
         for name, arr in (("K", K), ("R", R), ("C", C)):
             bad = ~np.isfinite(arr.reshape(n, -1)).all(axis=1)
@@ -298,11 +308,7 @@ class Capture:
             confidence=None if self.confidence is None else self.confidence[idx],
             image_names=self.image_names[idx],
             symmetric_pairs=self.symmetric_pairs,
-            extras={
-                k: v[idx]
-                for k, v in self.extras.items()
-                if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == self.num_images
-            },
+            image_ids={k: v[idx] for k, v in self.image_ids.items()},
         )
 
 

@@ -1,19 +1,18 @@
 """Stream clocks: each video's affine clock ``t = a_s + b_s frame``, fitted to the rays.
 
 At coarse sampling DLOE's graph places images by shape alone and a few tens of milliseconds off
-their instants, and the depth along each ray follows the timing error (sparse walking: 25 mm
-against the true-chain oracle's 6.8). A video's images, though, are not free on the time line:
-its frames are equally spaced, so the whole capture's timing is a few numbers per stream.
+their instants, and the depth along each ray follows the timing error. A video's images,
+though, are not free on the time line: its frames are equally spaced, so the whole capture's
+timing is a few numbers per stream.
 
 For given clocks every point's trajectory is fitted as a cubic B-spline in time to its rays by
 linear least squares (the residual is each observation's distance to its ray); the clocks that
 minimise that residual make the rays of different cameras agree. Variable projection: the
 spline coefficients are eliminated, the clocks go to Levenberg-Marquardt with the Kaufman
 Jacobian, after a coordinate grid over +-1/2 frame period per stream (the residual has local
-minima a sampling interval apart). The residual is summed over knot spacings of 2-5 sampling
-intervals of the merged streams: in a trajectory-basis prototype one basis size alone left
-running at 41 mm and jumping at 12.9, the sum over five at 20.5 and 7.7. Without the grid,
-jumping (sparse) stopped 34 ms off; with it, 0.3 ms.
+minima a sampling interval apart, and the fit alone can stop in one). The residual is summed
+over knot spacings of 2-5 sampling intervals of the merged streams: no single spacing suits
+every motion. The measurements behind these choices: docs/method.md, "Stream clocks".
 """
 
 from __future__ import annotations
@@ -28,8 +27,8 @@ SPACINGS = (2.0, 3.0, 4.0, 5.0)
 GRID_STEPS = 16
 """Grid points per frame period of the coordinate search."""
 GRID_POINTS = 8
-"""The grid's residual uses this many most-observed points, the fit after it all of them (an
-evaluation at 371 images and 28 points: 3.6 ms against 19; the sparse targets unchanged)."""
+"""The grid's residual uses this many most-observed points, the fit after it all of them (a
+fraction of the cost, the same clocks: docs/method.md, "Stream clocks")."""
 
 
 def ray_equations(
@@ -127,12 +126,11 @@ def fit_clocks(
     unless ``shared_rate`` is True, their rates are then freed too, starting from that fit.
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
-    two merged sampling intervals holds one of its frames: the spacings grow by half (two
-    cameras 90 degrees apart, 1 s at 30 Hz: walking's clocks 2.4 ms off with the spacings of
-    four streams, 0.1 ms with them 1.5 x; doubled, jumping's went 6 ms off). Returns None when
-    the fit moved a stream by more than a frame period against the others from ``t0`` (median
-    over its images): the grid searches half a period, so the rays did not pin the clocks (two
-    cameras at 7.5 Hz: 170 ms off).
+    two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
+    they are too wide for fast motion). Returns None when the fit moved a stream by more than a
+    frame period against the others from ``t0`` (median over its images): the grid searches
+    half a period, so the rays did not pin the clocks. The measurements: docs/method.md,
+    "Stream clocks".
     """
     f = frames.astype(np.float64)
     ids, inv = np.unique(streams, return_inverse=True)

@@ -106,11 +106,11 @@ def _normalised_cut(G: sp.csr_matrix, size: np.ndarray) -> np.ndarray | None:
     images) along its Fiedler vector, or None when no cut is weak.
 
     Between runs, weak is a cut under 5 % of the smaller side's volume: one event's runs are
-    linked all along their length (at least 31 % for 3 s clips on the mocap protocol, 12 % for
-    1 s clips; two events of similar poses 0.2-16 %). Lone photos (runs of one image) make an
-    event a long chain whose every cut is cheap relative to volume (0.1-0.5 %), so there a cut
-    must also carry under 0.5 % of the median weight crossing the line's cuts (an event's own
-    cuts: at least 2 %).
+    linked all along their length, two events of similar poses far less. When every run is a
+    lone photo (one image), an event is a long chain whose every cut is cheap relative to
+    volume, so there a weak cut is under 1 % of the volume and also carries under 0.5 % of the
+    median weight crossing the line's cuts. The measurements behind both thresholds:
+    docs/method.md, "Events".
     """
     n = G.shape[0]
     if n < 2:

@@ -130,7 +130,7 @@ def aggregate(capture: Capture, assignment: np.ndarray) -> Capture:
         x=x.reshape(n, s * p, 2), K=capture.K, R=capture.R, C=capture.C,
         stream=capture.stream, frame=capture.frame, confidence=conf.reshape(n, s * p),
         image_names=capture.image_names, symmetric_pairs=pairs,
-        extras={k: v for k, v in capture.extras.items() if k != "x_clean"},
+        image_ids=capture.image_ids,
     )
 
 

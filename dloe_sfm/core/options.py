@@ -54,6 +54,9 @@ class Clocks(str, Enum):
         return None
 
 
+AUTO = "auto"
+"""``noise_px`` estimated from the data by the solver (``core.noise``)."""
+
 RAY_WEIGHT_SCALE = 4e-8
 """Calibrated on the mocap protocol (pipelines/targets): 2 px at f = 1000 gives lambda2 = 1e-2.
 It is the squared scale, in normalised units, of what the smoothness rows cannot explain."""
@@ -77,7 +80,8 @@ def shown(value: object, limit: int = 60) -> str:
 @dataclass(frozen=True)
 class Number:
     """Allowed values of a numeric option: an interval (an open ``inf`` end excludes inf, NaN is
-    never inside), integers only with ``integer``, and None too with ``optional``."""
+    never inside), integers only with ``integer``, None too with ``optional``, and the word
+    ``auto`` too with ``auto``."""
 
     lo: float
     hi: float = math.inf
@@ -85,6 +89,7 @@ class Number:
     hi_open: bool = True
     integer: bool = False
     optional: bool = False
+    auto: bool = False
 
     def describe(self) -> str:
         kind = "an integer" if self.integer else "a number"
@@ -98,11 +103,14 @@ class Number:
             hi = str(int(self.hi)) if self.integer else f"{self.hi:g}"
             left, right = "(" if self.lo_open else "[", ")" if self.hi_open else "]"
             text = f"{kind} in {left}{self.lo:g}, {hi}{right}"
-        return f"None or {text}" if self.optional else text
+        text = f"None or {text}" if self.optional else text
+        return f"auto or {text}" if self.auto else text
 
-    def check(self, value: object) -> int | float | None:
+    def check(self, value: object) -> int | float | str | None:
         if value is None and self.optional:
             return None
+        if self.auto and isinstance(value, str) and value.lower() == AUTO:
+            return AUTO
         kind = numbers.Integral if self.integer else numbers.Real
         if isinstance(value, bool) or not isinstance(value, kind):
             raise ValueError
@@ -157,7 +165,7 @@ def _count(lo: int, hi: int = MAX_COUNT) -> Number:
 RULES: dict[str, Number | Flag | Choice] = {
     "lambda1": Number(0.0),
     "lambda2": Number(0.0, lo_open=True, hi_open=False, optional=True),
-    "noise_px": Number(0.0),
+    "noise_px": Number(0.0, auto=True),
     "lambda3": Number(0.0),
     "ridge": Number(0.0),
     "prior_weight": Number(0.0, 1.0, hi_open=False),
@@ -218,10 +226,12 @@ class Options:
     lambda2: float | None = None
     """Ray weight (O term); ``inf`` pins observed points to their rays and solves for depths.
     None: derived from ``noise_px`` (``inf`` for exact detections). None or > 0, inf allowed."""
-    noise_px: float = 0.0
+    noise_px: float | str = AUTO
     """Expected std of the 2D detections, pixels. With lambda2 = None it sets the ray weight
     ``lambda2 = RAY_WEIGHT_SCALE (f / noise_px)^2`` (f: median focal length in pixels): solve with
-    hard rays, then refine ``soft_iterations`` sweeps with soft ones. Finite, >= 0."""
+    hard rays, then refine ``soft_iterations`` sweeps with soft ones. ``auto``: every event
+    estimates it from its hard-ray solution (``core.noise``; 0, i.e. hard rays only, unless the
+    residuals are noise that every point shares). ``auto``, or finite and >= 0."""
     lambda3: float = 1e-7
     """Ray-convergence weight (R term): ``sum_ijp (D_ii W_ij r_ip . r_jp)^2``, unit-free; >= 0."""
     ridge: float = 1e-9
@@ -233,7 +243,8 @@ class Options:
     """D-step: ``D = c diag(q) + (1 - c) I`` with ``sum q = N``, i.e. ``D_ii >= 1 - c``.
     In [0, 1]."""
     fixed_degree: bool = True
-    """Keep D = I (skip the D-step): measured more accurate than the D-step (docs/method.md)."""
+    """Keep D = I (skip the D-step): in a prototype the D-step's floor set the smoothness weight
+    and a fixed D did better at high noise (docs/method.md, "Departures from the paper")."""
     end_degree: float = 0.1
     """D_ii of the images at the two ends of the estimated time line (no neighbour on one side);
     in [0, 1]."""
@@ -264,7 +275,8 @@ class Options:
     """With a finite ray weight: at most this many sweeps with soft rays after the hard-ray solve
     (0 = keep the hard-ray solve). With the weight from ``noise_px`` they stop as soon as the
     points' median reprojection residual is down to that of the noise, ``noise_px sqrt(2 ln 2)``
-    (the discrepancy principle): a few sweeps at 1-2 px, tens at 5 px. >= 0."""
+    (the discrepancy principle; how many sweeps that takes: docs/method.md, "The steps as
+    implemented"). >= 0."""
     tolerance: float = 1e-6
     """Stop when the RMS change of X in one sweep falls below this (normalised units; >= 0)..."""
     cost_tolerance: float = 1e-5
@@ -274,10 +286,9 @@ class Options:
     """Every event filmed by videos (two or more streams of three or more frames) is finally
     placed on its streams' fitted affine clocks (``core.clocks``): the points by the X-step on
     the chain along the clocks, the order from them. ``auto``: with hard rays (``noise_px`` = 0,
-    no ``lambda2``). There the motion alone pins the clocks (sparse walking: 0.6 ms median, the
-    error 25.5 -> 7.4 mm). With noisy rays, slow motion leaves them 9-21 ms off (soccer at
-    2 / 5 px) and DLOE's graph does better (soccer, 2 px: 3.8 mm, 6.9 with the fitted clocks,
-    4.1 with the true ones). ``on`` / ``off``: always / never (``off``: the paper's method)."""
+    no ``lambda2``): there the motion alone pins the clocks, while with noisy rays slow motion
+    leaves them off and DLOE's graph does better (docs/method.md, "Stream clocks").
+    ``on`` / ``off``: always / never (``off``: the paper's method)."""
     shared_rate: bool = False
     """With ``stream_clocks``: all streams run at one frame rate (True); else each stream's rate
     is fitted too, starting from the fit with one shared rate."""
@@ -291,8 +302,8 @@ class Options:
     of the observations is not run. None or > 0, finite."""
     robust_iterations: int = 5
     """At most this many reweighted re-solves (stops earlier when nothing changes; swaps fixed in
-    one round let the next find those that were hidden behind them: 3 rounds found 93 % of 10 %
-    swaps on walking, 5 found 98 %). >= 0."""
+    one round let the next find those that were hidden behind them: docs/method.md, "Wrong
+    detections (robust rounds)"). >= 0."""
     fix_swaps: bool = True
     """Exchange left/right detections of the capture's ``symmetric_pairs`` that fit the graph's
     prediction far better swapped."""
@@ -301,10 +312,11 @@ class Options:
     shapes) and solve each on its own."""
 
     def ray_weight(self, focal_px: float) -> float:
-        """The lambda2 in force for cameras of focal length ``focal_px``."""
+        """The lambda2 in force for cameras of focal length ``focal_px`` (hard rays, inf, with
+        ``noise_px`` = ``auto``: the solver replaces it by its estimate)."""
         if self.lambda2 is not None:
             return self.lambda2
-        if self.noise_px <= 0:
+        if self.noise_px == AUTO or self.noise_px <= 0:
             return float("inf")
         ratio = focal_px / self.noise_px
         return RAY_WEIGHT_SCALE * ratio * ratio  # inf, not OverflowError, for a tiny noise_px
@@ -317,7 +329,7 @@ class Options:
     @property
     def clocks_on(self) -> bool:
         """Whether stream clocks are fitted (``stream_clocks``: ``on``, or ``auto`` with hard
-        rays)."""
+        rays; the solver asks it with ``noise_px`` = ``auto`` replaced by its estimate)."""
         if self.stream_clocks is Clocks.AUTO:
             return self.ray_weight(1.0) == float("inf")
         return self.stream_clocks is Clocks.ON

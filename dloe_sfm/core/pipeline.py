@@ -14,7 +14,7 @@ from .alternation import Progress, soft_ray_weight, solve_event
 from .capture import Capture
 from .clocks import fit_clocks, ray_equations, time_chain
 from .events import segment_events
-from .options import Options, RobustLoss
+from .options import AUTO, Options, RobustLoss
 from .problem import assemble, initialise, normalise, parts
 from .result import Result
 from .robust import (
@@ -42,8 +42,8 @@ def solve_single(
     (:func:`initial_events`) and each event is sequenced and reconstructed on its own. With a
     robust loss (or symmetric pairs to check) the observations are then reweighted from the
     solution's residuals and the capture re-solved (:func:`robust_rounds`). With stream clocks
-    (``options.clocks_on``) every event filmed by videos is finally placed on its streams'
-    fitted clocks (:func:`clocked`).
+    (``options.clocks_on``, asked with the estimated noise when ``noise_px`` is ``auto``) every
+    event filmed by videos is finally placed on its streams' fitted clocks (:func:`clocked`).
     """
     started = time.perf_counter()
     X_world = initialise(capture, options)
@@ -53,6 +53,8 @@ def solve_single(
     init_seconds = time.perf_counter() - started
     result = solve_events(capture, options, labels, X_world, progress)
     result, solved = robust_rounds(capture, options, labels, result, progress)
+    if options.noise_px == AUTO:
+        options = options.replace(noise_px=result.noise_px)
     if options.clocks_on:
         result = clocked(solved, options, result)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
@@ -136,6 +138,7 @@ def solve_events(
         seconds=sum(r.seconds for r in results),
         timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         scale=results[0].scale,
+        noise_px=max(r.noise_px for r in results),
     )
 
 
@@ -155,8 +158,8 @@ def robust_rounds(
     predicts the observations it used at least 5 % better (median residual) than the plain
     solve: real outliers bend the graph, so removing them tightens the fit, while at coarse
     sampling the largest residuals are the graph's own interpolation errors and dropping them
-    helps nothing (docs/method.md has the measurement). Stops when no pair was swapped and the
-    rejected set changed by at most 0.1 % of the observations.
+    helps nothing (docs/method.md, "Wrong detections (robust rounds)"). Stops when no pair was
+    swapped and the rejected set changed by at most 0.1 % of the observations.
     Returns ``result`` re-solved, with ``outliers`` the observations the final solve left out
     and ``swaps`` every exchange kept, and the capture it was solved on (swaps undone,
     observations reweighted).

@@ -42,6 +42,9 @@ class Result:
         Seconds spent per stage (init, w_step, d_step, x_step, sequencing, ...).
     scale : float
         The normalisation length (median camera-to-scene distance, world units).
+    noise_px : float
+        The detection noise (std, pixels) the solve used: ``Options.noise_px``, or its estimate
+        with ``auto`` (0: the detections were taken as exact; with several events, the largest).
     clock : (N,) float or None
         With stream clocks (``Options.stream_clocks``): every image's time on its stream's
         fitted clock, in frames of its event's longest stream (NaN in an event without them);
@@ -77,6 +80,7 @@ class Result:
     seconds: float
     timings: dict = field(default_factory=dict)
     scale: float = 1.0
+    noise_px: float = 0.0
     clock: np.ndarray | None = None
     subject_id: np.ndarray | None = None
     point_id: np.ndarray | None = None

@@ -227,7 +227,8 @@ def x_step(
             c = np.zeros(3 * n)
             Bm = None
         H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
-        # symmetric mode + minimum degree on A^T + A: ~10x faster than SuperLU's defaults here
+        # symmetric mode + minimum degree on A^T + A: faster than SuperLU's defaults here
+        # (docs/method.md, "Speed")
         lu = spla.splu(
             H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
         )

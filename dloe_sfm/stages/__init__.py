@@ -8,7 +8,6 @@ and a ``main(...)`` callable from Python:
 - ``demo``: the whole chain on the bundled demo workspace, scored against the known truth;
 - ``import_calibration``: a calibration made elsewhere -> a COLMAP model;
 - ``view``: play a ``reconstruct`` output in open3d's window (or write a GIF);
+- ``evaluate``: score a result against ground truth (the scoring itself: ``dloe_sfm.evaluate``);
 - ``benchmark``: the paper's experiments with every baseline.
-
-``dloe-sfm evaluate`` runs ``dloe_sfm.evaluate`` (``dloe_sfm.cli.STAGES``).
 """

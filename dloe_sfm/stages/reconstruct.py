@@ -16,11 +16,13 @@ from ..colmap import load_workspace
 from ..config import load_options
 from ..core.options import Options
 from ..core.solver import reconstruct
+from ..core.sync import Fps, check_fps
 from ..errors import InputError
 from ..io import check_output
 from ..keypoints import FORMATS, Layout, load_layout, read_keypoints
 from ..observations import PERSON_MODES, build_capture, observed_layout
 from ..resources import check_solve_memory
+from .sync import add_fps_option, parse_fps
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -57,8 +59,9 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
          aruco_dict: str | None = None,
          config: Path | None = None, overrides: list[str] | None = None,
          options: Options | None = None, overwrite: bool = False, plots: bool = True,
-         export_rate: float | None = None) -> Path:
-    """Workspace + keypoints -> capture -> DLOE -> ``out`` (docs/interfaces.md, outputs).
+         export_rate: float | None = None, fps: Fps = None) -> Path:
+    """Workspace + keypoints -> capture -> DLOE -> ``out`` (docs/interfaces.md, "Reconstruct
+    outputs").
 
     ``keypoints`` may be None for ``aruco`` (markers detected in the workspace's images).
     ``layout`` (names, skeleton, left/right pairs of the points; ``keypoints.load_layout``: a
@@ -67,6 +70,8 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     DICT_4X4_50); only for ``aruco``.
     ``export_rate``: samples per reference-stream frame of ``trajectories.trc`` / ``.c3d``
     (``mocap_export``; default the fastest stream's rate).
+    ``fps``: the streams' frame rates, one for all or per stream id (``core.sync``): times in
+    seconds, offsets in ms.
     ``out`` is checked first (``io.check_output``: never an input, an existing folder only
     replaced with ``overwrite`` and when dloe-sfm wrote it, writable) and written atomically:
     on any error nothing is left at ``out``. Returns ``out``.
@@ -92,9 +97,10 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     timings["read_keypoints"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
-    capture = build_capture(ws, kp, stream_pattern=stream_pattern, min_score=min_score,
-                            person=person)
+    capture, skipped, unobserved = build_capture(ws, kp, stream_pattern=stream_pattern,
+                                                 min_score=min_score, person=person)
     timings["build_capture"] = time.perf_counter() - tic
+    check_fps(fps, capture.stream_ids)
 
     tic = time.perf_counter()
     check_solve_memory(capture, options, workspace)
@@ -115,18 +121,17 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
             "min_score": min_score,
             "person": person,
             "unregistered_images": list(ws.unregistered),
-            "skipped_images": list(capture.extras["skipped_images"]),
-            "unobserved_points": [kp.layout.point_names[j]
-                                  for j in capture.extras["unobserved_points"]],
+            "skipped_images": list(skipped),
+            "unobserved_points": [kp.layout.point_names[j] for j in unobserved],
         },
         "parameters": options.to_dict(),
         "timings": timings,
     }
-    layout = observed_layout(kp.layout, capture.extras["unobserved_points"])
-    from ..export import export_outputs  # open3d: 1 s to import, only when writing
+    layout = observed_layout(kp.layout, unobserved)
+    from ..export import export_outputs  # open3d is slow to import: only when writing
 
     export_outputs(out, capture, result, workspace=ws, layout=layout, report=report,
-                   overwrite=overwrite, plots=plots, export_rate=export_rate)
+                   overwrite=overwrite, plots=plots, export_rate=export_rate, fps=fps)
     return out
 
 
@@ -168,6 +173,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export-rate", type=_positive_rate, metavar="RATE",
                         help="samples per reference-stream frame of trajectories.trc / .c3d "
                              "(default: the fastest stream's rate)")
+    add_fps_option(parser)
     parser.add_argument("--progress", action="store_true",
                         help="show progress bars (default: only on a terminal)")
 
@@ -178,7 +184,8 @@ def run(args: argparse.Namespace) -> int:
                layout=args.layout, aruco_dict=args.aruco_dict, config=args.config,
                overrides=args.overrides,
                options=Options(),
-               overwrite=args.overwrite, plots=args.plots, export_rate=args.export_rate)
+               overwrite=args.overwrite, plots=args.plots, export_rate=args.export_rate,
+               fps=parse_fps(args.fps))
     print(f"reconstruction written to {out}")
     return 0
 

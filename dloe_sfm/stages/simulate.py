@@ -59,22 +59,26 @@ def main(
     for name, value, high in (("gap", gap, math.inf), ("spacing", spacing, math.inf),
                               ("outliers", outliers, 1.0), ("swaps", swaps, 1.0)):
         _check_fraction_or_distance(name, value, high)
+    if (outliers > 0 or swaps > 0) and settings is not None and settings.detector is not None:
+        raise InputError("--outliers / --swaps cannot be combined with --detector (the detector "
+                         "model makes its own outliers and swaps)")
     check_not_input(out, paths, "input mocap file")
     seqs = [load_mocap(p) for p in paths]
     if len(seqs) == 1:
-        capture = simulate(seqs[0], settings)
+        capture, truth = simulate(seqs[0], settings)
     elif mix == "events":
-        capture = simulate_events(seqs, settings, gap=gap)
+        capture, truth = simulate_events(seqs, settings, gap=gap)
     elif mix == "people":
-        capture = simulate_people(seqs, settings, spacing=spacing)
+        capture, truth = simulate_people(seqs, settings, spacing=spacing)
     else:
         raise InputError(f"unknown mix '{mix}' (known: {', '.join(MIXES)})")
     seed = (settings or SimulationSettings()).seed
     if outliers > 0:
-        capture = add_outliers(capture, outliers, seed=seed + 1)
+        capture, truth = add_outliers(capture, truth, outliers, seed=seed + 1)
     if swaps > 0:
-        capture = swap_symmetric(capture, symmetric_pairs(seqs[0].parents), swaps, seed=seed + 2)
-    save_capture(out, capture)
+        capture, truth = swap_symmetric(capture, truth, symmetric_pairs(seqs[0].parents), swaps,
+                                        seed=seed + 2)
+    save_capture(out, capture, truth)
     logger.info("%s: %d images x %d points from %s", out, capture.num_images,
                 capture.num_points, ", ".join(s.name for s in seqs))
     return Path(out)

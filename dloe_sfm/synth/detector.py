@@ -83,14 +83,14 @@ def detect(
     pairs: np.ndarray,
     rng: np.random.Generator,
     visible: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Detections of clean projections ``x_clean`` (N, ..., P, 2) pixels.
 
     Every image's person height in pixels is the y-extent of its clean points; ``stream`` (N,)
     picks the per-(stream, joint) bias, ``pairs`` (K, 2) the left/right joints that may swap;
     ``visible`` (N, ..., P) False where the observation was removed beforehand.
     Returns x (N, ..., P, 2) with NaN for misses, confidence (N, ..., P) in (0, 1] (0 where
-    missing), and ground truth ``outlier_true`` (N, ..., P) and ``swap_true`` (N, ..., K).
+    missing), and the ground truth: outliers (N, ..., P) and swaps (N, ..., K) bool.
     """
     n, p = x_clean.shape[0], x_clean.shape[-2]
     lead = (n,) + (1,) * (x_clean.ndim - 3)  # bias broadcast over the person slots
@@ -111,4 +111,4 @@ def detect(
     error = np.linalg.norm(x - x_clean, axis=-1) / height[..., None]
     confidence = np.where(seen, model.confidence(np.nan_to_num(error), rng), 0.0)
     outlier = seen & (np.linalg.norm(noise, axis=-1) > model.outlier_threshold)
-    return x, confidence, {"outlier_true": outlier, "swap_true": swap}
+    return x, confidence, outlier, swap

@@ -23,6 +23,7 @@ from ..core.capture import Capture, project
 from ..core.options import shown
 from ..errors import InputError
 from ..io import read_mocap
+from ..truth import GroundTruth, Simulated
 from .detector import DETECTORS, DetectorModel, detect
 
 
@@ -249,10 +250,13 @@ def _render(
     radius: float,
     s: SimulationSettings,
     rng: np.random.Generator,
-    extras: dict,
-) -> Capture:
+    t: np.ndarray,
+    parents: np.ndarray,
+    events: np.ndarray | None = None,
+) -> Simulated:
     """Project (N, ..., 3) points into the ring's cameras with noise (or the detector model:
-    confidences, ``outlier_true`` / ``swap_true`` in ``extras``) and missing points."""
+    confidences, true outliers and swaps) and missing points; ``t`` (N,) seconds, ``parents``
+    and ``events`` go to the truth."""
     K1, R1, C1 = ring_cameras(
         centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
     )
@@ -270,28 +274,28 @@ def _render(
         gone[np.arange(n), rng.integers(0, p, n)] = False  # every image keeps a point
         gone[rng.integers(0, n, p), np.arange(p)] = False  # every point stays seen somewhere
         flat[gone] = np.nan
-    confidence = pairs = None
+    confidence = pairs = outliers = swaps = None
     if s.detector is not None:
-        pairs = symmetric_pairs(extras["parents"])
-        x, confidence, truth = detect(DetectorModel.load(s.detector), x_clean, stream, pairs,
-                                      rng, np.isfinite(x).all(axis=-1))
-        extras = {**extras, **truth}
+        pairs = symmetric_pairs(parents)
+        x, confidence, outliers, swaps = detect(DetectorModel.load(s.detector), x_clean, stream,
+                                                pairs, rng, np.isfinite(x).all(axis=-1))
     names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=True)])
-    return Capture(
+    capture = Capture(
         x=x, K=K, R=R, C=C, stream=stream, frame=frame, image_names=names,
         confidence=confidence, symmetric_pairs=pairs,
-        extras={"X_true": X_true, "x_clean": x_clean, "settings": np.array(str(asdict(s))),
-                **extras},
     )
+    truth = GroundTruth(X=X_true, t=t, x_clean=x_clean, events=events, outliers=outliers,
+                        swaps=swaps, parents=parents, settings=np.array(str(asdict(s))))
+    return Simulated(capture, truth)
 
 
-def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> Capture:
-    """Sample ``seq`` with unsynchronised streams; ground truth in ``extras``.
+def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> Simulated:
+    """Sample ``seq`` with unsynchronised streams: the capture and its ground truth.
 
     Images are stored stream by stream in frame order (as videos are), never in time order.
-    ``extras``: ``X_true`` (N, P, 3) metres, ``t_true`` (N,) seconds, ``x_clean`` (N, P, 2) pixels
-    before noise and removal; with ``detector``, ``outlier_true`` (N, P) and ``swap_true``
-    (N, K) of the capture's ``symmetric_pairs``, and the simulated scores as ``confidence``.
+    Truth: ``X`` (N, P, 3) metres, ``t`` (N,) seconds, ``x_clean`` (N, P, 2) pixels before noise
+    and removal, ``parents``; with ``detector``, ``outliers`` (N, P) and ``swaps`` (N, K) of the
+    capture's ``symmetric_pairs``, and the simulated scores as ``confidence``.
     """
     s = settings or SimulationSettings()
     rng = np.random.default_rng(s.seed)
@@ -299,5 +303,5 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     centre = pos.reshape(-1, 3).mean(axis=0)
     radius = _ring_radius(s, pos.reshape(-1, 3), centre)
     t, stream, frame = _stream_samples(pos.shape[0] - 1, seq.fps, s, rng)
-    extras = {"t_true": (t + round(s.start * seq.fps)) / seq.fps, "parents": seq.parents}
-    return _render(_interpolate(pos, t), stream, frame, centre, radius, s, rng, extras)
+    return _render(_interpolate(pos, t), stream, frame, centre, radius, s, rng,
+                   (t + round(s.start * seq.fps)) / seq.fps, seq.parents)

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core.capture import Capture
 from ..errors import InputError
+from ..truth import GroundTruth, Simulated
 from .mocap import (
     MocapSequence,
     SimulationSettings,
@@ -43,11 +44,11 @@ def _same_rate(seqs: list[MocapSequence]) -> float:
 
 def simulate_events(
     seqs: list[MocapSequence], settings: SimulationSettings | None = None, *, gap: float = 2.0
-) -> Capture:
+) -> Simulated:
     """The clips of ``seqs`` one after another, ``gap`` seconds apart, seen by one camera ring.
 
-    Each clip is moved to the ring's centre. ``extras`` as :func:`simulate` plus ``event_true``
-    (N,) the clip of every image.
+    Each clip is moved to the ring's centre. Truth as :func:`simulate` plus ``events`` (N,) the
+    clip of every image.
     """
     s = settings or SimulationSettings()
     rng = np.random.default_rng(s.seed)
@@ -66,8 +67,8 @@ def simulate_events(
     X, t, stream, frame, event = X[keep], t[keep], stream[keep], frame[keep], event[keep]
     everything = np.concatenate([c.reshape(-1, 3) for c in clips])
     radius = _ring_radius(s, everything, np.zeros(3))
-    extras = {"t_true": t / fps, "event_true": event, "parents": seqs[0].parents}
-    return _render(X, stream, frame, np.zeros(3), radius, s, rng, extras)
+    return _render(X, stream, frame, np.zeros(3), radius, s, rng, t / fps, seqs[0].parents,
+                   event)
 
 
 def simulate_people(
@@ -76,12 +77,13 @@ def simulate_people(
     *,
     spacing: float = 2.0,
     shuffle: bool = True,
-) -> Capture:
+) -> Simulated:
     """One person per sequence, side by side ``spacing`` metres apart along x, in every image.
 
     Returns a several-subject capture: ``x`` (N, S, P, 2) with the detections of every image in a
-    random order (``shuffle``). ``extras``: ``X_true`` (N, S, P, 3) by person, ``subject_true``
-    (N, S) the person of every detection slot, ``t_true`` (N,) seconds.
+    random order (``shuffle``; confidence and the detector's outliers / swaps follow the slots).
+    Truth: ``X`` (N, S, P, 3) by person, ``subjects`` (N, S) the person of every detection slot,
+    ``t`` (N,) seconds.
     """
     s = settings or SimulationSettings()
     rng = np.random.default_rng(s.seed)
@@ -96,24 +98,30 @@ def simulate_people(
     X = np.stack([_interpolate(c, t) for c in clips], axis=1)
     everything = np.concatenate([c.reshape(-1, 3) for c in clips])
     radius = _ring_radius(s, everything, np.zeros(3))
-    capture = _render(X, stream, frame, np.zeros(3), radius, s, rng,
-                      {"t_true": t / fps, "parents": seqs[0].parents})
+    capture, truth = _render(X, stream, frame, np.zeros(3), radius, s, rng, t / fps,
+                             seqs[0].parents)
     slots = np.tile(np.arange(len(seqs)), (t.size, 1))
     if shuffle:
         slots = rng.permuted(slots, axis=1)
-    capture.x = np.take_along_axis(capture.x, slots[:, :, None, None], axis=1)
-    capture.extras["x_clean"] = np.take_along_axis(
-        capture.extras["x_clean"], slots[:, :, None, None], axis=1
-    )
-    capture.extras["subject_true"] = slots
-    return capture
+
+    def by_slot(a: np.ndarray | None) -> np.ndarray | None:
+        """(N, S, ...) ``a`` with the slots of every image in the shuffled order."""
+        if a is None:
+            return None
+        return np.take_along_axis(a, slots.reshape(*slots.shape, *(1,) * (a.ndim - 2)), axis=1)
+
+    capture = replace(capture, x=by_slot(capture.x), confidence=by_slot(capture.confidence))
+    truth = replace(truth, x_clean=by_slot(truth.x_clean), outliers=by_slot(truth.outliers),
+                    swaps=by_slot(truth.swaps), subjects=slots)
+    return Simulated(capture, truth)
 
 
 def add_outliers(
-    capture: Capture, fraction: float, *, low: float = 20.0, high: float = 100.0, seed: int = 0
-) -> Capture:
+    capture: Capture, truth: GroundTruth, fraction: float, *, low: float = 20.0,
+    high: float = 100.0, seed: int = 0,
+) -> Simulated:
     """A copy with ``fraction`` of the observations moved ``low``-``high`` pixels in a random
-    direction (wrong detections); ``extras["outlier_true"]`` marks them."""
+    direction (wrong detections); the truth's ``outliers`` marks them."""
     rng = np.random.default_rng(seed)
     x = capture.x.copy()
     seen = np.isfinite(x).all(axis=-1)
@@ -121,14 +129,14 @@ def add_outliers(
     angle = rng.uniform(0, 2 * np.pi, hit.sum())
     length = rng.uniform(low, high, hit.sum())
     x[hit] += length[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
-    return replace(capture, x=x, extras={**capture.extras, "outlier_true": hit})
+    return Simulated(replace(capture, x=x), replace(truth, outliers=hit))
 
 
 def swap_symmetric(
-    capture: Capture, pairs: np.ndarray, fraction: float, *, seed: int = 0
-) -> Capture:
+    capture: Capture, truth: GroundTruth, pairs: np.ndarray, fraction: float, *, seed: int = 0
+) -> Simulated:
     """A copy where every (image, pair) of two observed points is swapped with probability
-    ``fraction`` (a detector confusing left and right); ``extras["swap_true"]`` (N, K) marks
+    ``fraction`` (a detector confusing left and right); the truth's ``swaps`` (N, K) marks
     them and ``symmetric_pairs`` is set."""
     rng = np.random.default_rng(seed)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
@@ -140,5 +148,4 @@ def swap_symmetric(
     a, b = pairs[idx[-1], 0], pairs[idx[-1], 1]
     head = idx[:-1]
     x[(*head, a)], x[(*head, b)] = capture.x[(*head, b)], capture.x[(*head, a)]
-    return replace(capture, x=x, symmetric_pairs=pairs,
-                   extras={**capture.extras, "swap_true": hit})
+    return Simulated(replace(capture, x=x, symmetric_pairs=pairs), replace(truth, swaps=hit))

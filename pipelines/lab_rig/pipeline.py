@@ -128,7 +128,7 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
         kp = Keypoints(layout=kp_all.layout, source=kp_all.source, points={
             image_name(c, f): dets[c][f] for c in cameras for f in kept[c]
         })
-        capture = build_capture(ws, kp, min_score=min_score, person="largest")
+        capture = build_capture(ws, kp, min_score=min_score, person="largest").capture
         result = dloe_sfm.reconstruct(capture, options)
         seconds_dloe = result.seconds
         logger.info("DLOE: %s, %.1f s", result.message, seconds_dloe)

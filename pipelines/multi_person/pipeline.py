@@ -48,6 +48,7 @@ from dloe_sfm.synth.scenarios import (
     simulate_people,
     swap_symmetric,
 )
+from dloe_sfm.truth import GroundTruth
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -135,9 +136,9 @@ def mean_error_mm(X: np.ndarray, X_true: np.ndarray) -> float:
     return float(np.linalg.norm(X - X_true, axis=-1).mean() * 1000)
 
 
-def score_people(capture: Capture, out: dict, motions: tuple[str, ...]) -> dict:
+def score_people(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str, ...]) -> dict:
     """Association (best global permutation of subject ids) and every person's error."""
-    truth, X_true = capture.extras["subject_true"], capture.extras["X_true"]
+    truth, X_true = gt.subjects, gt.X
     found = out["detection_subject"]
     m = truth.shape[1]
     found = np.pad(found[:, :m], ((0, 0), (0, max(m - found.shape[1], 0))), constant_values=-1)
@@ -159,13 +160,13 @@ def score_people(capture: Capture, out: dict, motions: tuple[str, ...]) -> dict:
             "associated": float(associated(perm).mean()), "people": people}
 
 
-def score_events(capture: Capture, out: dict, motions: tuple[str, ...]) -> dict:
+def score_events(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str, ...]) -> dict:
     """Event purity (images of an estimated event in its majority clip / all) and per-clip error."""
-    truth, events = capture.extras["event_true"], out["events"]
+    truth, events = gt.events, out["events"]
     majority = sum(Counter(truth[events == e].tolist()).most_common(1)[0][1]
                    for e in np.unique(events))
     clips = [{"motion": motion, "images": int((truth == k).sum()),
-              "error_mm": mean_error_mm(out["X"][truth == k], capture.extras["X_true"][truth == k])}
+              "error_mm": mean_error_mm(out["X"][truth == k], gt.X[truth == k])}
              for k, motion in enumerate(motions)]
     return {"images": capture.num_images, "events_found": int(np.unique(events).size),
             "purity": majority / truth.size, "clips": clips}
@@ -177,9 +178,10 @@ def _rows_of(capture: Capture, layout: Layout) -> tuple[dict[str, int], dict[str
             {name: j for j, name in enumerate(layout.point_names)})
 
 
-def score_outliers(capture: Capture, out: dict, plain: dict, layout: Layout) -> dict:
+def score_outliers(capture: Capture, gt: GroundTruth, out: dict, plain: dict,
+                   layout: Layout) -> dict:
     """Error with and without the robust loss; down-weighted observations vs the true outliers."""
-    truth = capture.extras["outlier_true"]
+    truth = gt.outliers
     image, point = _rows_of(capture, layout)
     flagged = np.zeros_like(truth)
     for obs in out["report"]["downweighted"]["observations"]:
@@ -188,13 +190,13 @@ def score_outliers(capture: Capture, out: dict, plain: dict, layout: Layout) -> 
     return {"images": capture.num_images, "outliers": int(truth.sum()),
             "downweighted": int(flagged.sum()),
             "recall": hits / max(int(truth.sum()), 1), "precision": hits / max(flagged.sum(), 1),
-            "error_mm": mean_error_mm(out["X"], capture.extras["X_true"]),
-            "error_no_robust_mm": mean_error_mm(plain["X"], capture.extras["X_true"])}
+            "error_mm": mean_error_mm(out["X"], gt.X),
+            "error_no_robust_mm": mean_error_mm(plain["X"], gt.X)}
 
 
-def score_swaps(capture: Capture, out: dict, layout: Layout) -> dict:
+def score_swaps(capture: Capture, gt: GroundTruth, out: dict, layout: Layout) -> dict:
     """True swaps listed in swaps_fixed (an (image, pair) exchanged an odd number of times)."""
-    truth = capture.extras["swap_true"]
+    truth = gt.swaps
     image, point = _rows_of(capture, layout)
     pair_of = {frozenset(pair): k for k, pair in enumerate(layout.symmetric_pairs)}
     exchanged = np.zeros(truth.shape, dtype=np.int64)
@@ -205,7 +207,7 @@ def score_swaps(capture: Capture, out: dict, layout: Layout) -> dict:
             "listed": int(out["report"]["swaps_fixed"]["count"]),
             "found": float((fixed & truth).sum() / max(truth.sum(), 1)),
             "false_swaps": int((fixed & ~truth).sum()),
-            "error_mm": mean_error_mm(out["X"], capture.extras["X_true"])}
+            "error_mm": mean_error_mm(out["X"], gt.X)}
 
 
 def run_case(case: str, folder: Path, data: Path, settings: SimulationSettings,
@@ -213,30 +215,30 @@ def run_case(case: str, folder: Path, data: Path, settings: SimulationSettings,
     """Simulate, write, reconstruct and score one case in ``folder``."""
     if case == "people":
         seqs = [load_mocap(resolve_motion(data, m)) for m in PEOPLE]
-        capture = simulate_people(seqs, settings, spacing=2.0)
+        capture, gt = simulate_people(seqs, settings, spacing=2.0)
     elif case == "events":
         seqs = [load_mocap(resolve_motion(data, m)) for m in EVENTS]
-        capture = simulate_events(seqs, settings, gap=2.0)
+        capture, gt = simulate_events(seqs, settings, gap=2.0)
     else:
-        capture = simulate(load_mocap(resolve_motion(data, SINGLE)), settings)
-    layout = cmu_layout(capture.extras["parents"])
+        capture, gt = simulate(load_mocap(resolve_motion(data, SINGLE)), settings)
+    layout = cmu_layout(gt.parents)
     if case == "outliers":
-        capture = add_outliers(capture, 0.05, seed=settings.seed + 1)
+        capture, gt = add_outliers(capture, gt, 0.05, seed=settings.seed + 1)
     elif case == "swaps":
-        capture = swap_symmetric(capture, np.array(layout.symmetric_pairs), 0.1,
-                                 seed=settings.seed + 2)
+        capture, gt = swap_symmetric(capture, gt, np.array(layout.symmetric_pairs), 0.1,
+                                     seed=settings.seed + 2)
     write_inputs(folder, capture, layout, settings.image_size)
     out = run_stage(folder, capture, overrides=overrides, plots=plots)
     if case == "people":
-        row = score_people(capture, out, PEOPLE)
+        row = score_people(capture, gt, out, PEOPLE)
     elif case == "events":
-        row = score_events(capture, out, EVENTS)
+        row = score_events(capture, gt, out, EVENTS)
     elif case == "outliers":
         plain = run_stage(folder, capture, name="reconstruction_no_robust",
                           overrides=[*overrides, "robust_loss=none"])
-        row = score_outliers(capture, out, plain, layout)
+        row = score_outliers(capture, gt, out, plain, layout)
     else:
-        row = score_swaps(capture, out, layout)
+        row = score_swaps(capture, gt, out, layout)
     return {"case": case, **row, "seconds_stage": out["seconds"],
             "seconds_solve": out["report"]["timings"]["solve"]}
 

@@ -41,6 +41,7 @@ from dloe_sfm.synth.scenarios import (
     simulate_people,
     swap_symmetric,
 )
+from dloe_sfm.truth import GroundTruth, Simulated
 
 EVENT_MIXES = [
     ("walking_1", "jumping_1", "basketball_signal_1"),
@@ -64,21 +65,23 @@ def _settings(noise: float, duration: float, seed: int) -> SimulationSettings:
     return SimulationSettings(duration=duration, noise=noise, seed=seed)
 
 
-def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Capture:
+def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Simulated:
     """One person at the ring's centre, as in the people case, as a one-subject capture."""
-    cap = simulate_people([seq], settings, shuffle=False)
-    return Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame,
-                   extras={"X_true": cap.extras["X_true"][:, 0]})
+    cap, truth = simulate_people([seq], settings, shuffle=False)
+    return Simulated(
+        Capture(x=cap.x[:, 0], K=cap.K, R=cap.R, C=cap.C, stream=cap.stream, frame=cap.frame),
+        GroundTruth(X=truth.X[:, 0], t=truth.t),
+    )
 
 
 def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int) -> dict:
     seqs = [load_mocap(resolve_motion(data, m)) for m in mix]
-    cap = simulate_events(seqs, _settings(noise, duration, seed))
+    cap, sim = simulate_events(seqs, _settings(noise, duration, seed))
     opts = Options(noise_px=noise)
     tic = time.perf_counter()
     r = reconstruct(cap, opts)
     sec = time.perf_counter() - tic
-    truth, X_true = cap.extras["event_true"], cap.extras["X_true"]
+    truth, X_true = sim.events, sim.X
     majority = sum(Counter(truth[r.events == e]).most_common(1)[0][1] for e in np.unique(r.events))
     clips = []
     for k, m in enumerate(mix):
@@ -95,12 +98,12 @@ def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int)
 
 def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int) -> dict:
     seqs = [load_mocap(resolve_motion(data, m)) for m in pair]
-    cap = simulate_people(seqs, _settings(noise, duration, seed))
+    cap, sim = simulate_people(seqs, _settings(noise, duration, seed))
     opts = Options(noise_px=noise)
     tic = time.perf_counter()
     r = reconstruct(cap, opts)
     sec = time.perf_counter() - tic
-    truth, X_true = cap.extras["subject_true"], cap.extras["X_true"]
+    truth, X_true = sim.subjects, sim.X
     s = len(pair)
     perm = best_permutation(r.assignment, truth)  # subject k is person perm[k]
     associated = float((np.array(perm)[r.assignment] == truth).all(axis=1).mean())
@@ -123,10 +126,10 @@ def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int
 
 def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
     seq = load_mocap(resolve_motion(data, motion))
-    cap = _one_person(seq, _settings(noise, duration, seed))
-    X_true = cap.extras["X_true"]
-    bad = add_outliers(cap, 0.05, seed=seed + 1)
-    truth = bad.extras["outlier_true"]
+    cap, sim = _one_person(seq, _settings(noise, duration, seed))
+    X_true = sim.X
+    bad, sim = add_outliers(cap, sim, 0.05, seed=seed + 1)
+    truth = sim.outliers
     opts = Options(noise_px=noise)
     clean = _error(reconstruct(cap, opts).X, X_true)
     tic = time.perf_counter()
@@ -148,12 +151,12 @@ def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: i
 
 def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
     seq = load_mocap(resolve_motion(data, motion))
-    cap = _one_person(seq, _settings(noise, duration, seed))
+    cap, sim = _one_person(seq, _settings(noise, duration, seed))
     pairs = symmetric_pairs(seq.parents)
-    bad = swap_symmetric(cap, pairs, 0.1, seed=seed + 2)
-    truth = bad.extras["swap_true"]
+    bad, sim = swap_symmetric(cap, sim, pairs, 0.1, seed=seed + 2)
+    truth = sim.swaps
     opts = Options(noise_px=noise)
-    clean = _error(reconstruct(cap, opts).X, cap.extras["X_true"])
+    clean = _error(reconstruct(cap, opts).X, sim.X)
     tic = time.perf_counter()
     r = reconstruct(bad, opts)
     sec = time.perf_counter() - tic
@@ -161,7 +164,7 @@ def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int)
     row = {"case": "swaps", "motions": [motion], "noise_px": noise, "images": cap.num_images,
            "swapped": int(truth.sum()), "found": float((fixed & truth).sum() / truth.sum()),
            "false_swaps": int((fixed & ~truth).sum()), "clean_mm": clean,
-           "error_mm": _error(r.X, cap.extras["X_true"]), "seconds": sec}
+           "error_mm": _error(r.X, sim.X), "seconds": sec}
     row["pass"] = row["found"] >= 0.95
     return row
 

@@ -1,0 +1,182 @@
+"""Sub-frame synchronisation: every stream's affine clock ``time = offset + rate frame`` with
+standard uncertainties (docs/interfaces.md, "Synchronisation").
+
+Time is counted in frames of each event's reference stream (``mocap_export.image_times``: its
+video with the most images, at its own frames), so the reference has offset 0 and rate 1
+exactly, and every other stream's offset and rate are relative to it.
+
+Uncertainty. When the times are the streams' affine clocks (base ``clock`` or ``affine
+embedding``) a line through them fits exactly, so its scatter says nothing. The uncertainty then
+comes from the clock fit's own problem (``core.clocks``: every point's trajectory a cubic
+B-spline in time, the residual each observation's distance to its ray, the spline eliminated),
+with ``J`` the Kaufman Jacobian of the residuals in the non-reference streams' offsets and rates,
+averaged over the fit's knot spacings: the Gauss-Newton covariance ``s^2 (J^T J)^-1`` (``s^2``
+the residual variance per degree of freedom: the rays' noise) plus the outer product of the
+Gauss-Newton step each spacing alone would take from the estimate (the spline model's own
+error, which dominates on clean data). It is local: a fit caught in a wrong minimum keeps a
+small one. With base ``rank`` the times are not on lines: ordinary
+least squares of the times on the frames, with its standard errors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import InputError
+from .capture import Capture
+from .clocks import SPACINGS, ray_equations, spline_residuals
+
+Fps = float | dict[int, float] | None
+"""Frame rates: one for every stream, per stream id, or unknown."""
+
+
+def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
+           videos: list[int]) -> dict[int, tuple[float, float, float, float]]:
+    """Per stream: OLS ``(offset, rate, offset_sd, rate_sd)`` of ``t`` on its frames (standard
+    errors from the scatter; 0 with two images)."""
+    lines = {}
+    for s in videos:
+        m = streams == s
+        f, y = frames[m].astype(np.float64), t[m]
+        A = np.stack([np.ones(f.size), f], axis=1)
+        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+        dof = f.size - 2
+        var = float(((y - A @ coef) ** 2).sum() / dof) if dof > 0 else 0.0
+        cov = var * np.linalg.inv(A.T @ A)
+        lines[s] = (float(coef[0]), float(coef[1]), float(np.sqrt(cov[0, 0])),
+                    float(np.sqrt(cov[1, 1])))
+    return lines
+
+
+def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
+                    free: list[int]) -> np.ndarray:
+    """(2q, 2q) covariance of the offsets then rates of the ``free`` streams (module docstring);
+    ``t`` the event's times, on every stream's line."""
+    f = frames.astype(np.float64)
+    onehot = (streams[:, None] == np.array(free)[None, :]).astype(np.float64)
+    dt = np.concatenate([onehot, onehot * f[:, None]], axis=1)
+    E, rhs = ray_equations(capture.rays(), capture.C, capture.weights)
+    visible = capture.visible
+    interval = float(np.median(np.diff(np.unique(t))))
+    img, pt = np.nonzero(visible)
+    cov = 0.0
+    for h in SPACINGS:
+        spacing = h * interval * (1.5 if len(free) == 1 else 1.0)
+        start = float(t.min()) - 3.0 - spacing
+        r, J = spline_residuals(t, E, rhs, visible, spacing, start, dt)
+        nb = int(np.floor((t.max() - start) / spacing)) + 4
+        first = np.floor((t[img] - start) / spacing).astype(np.int64)
+        spline = np.unique((pt * nb + first)[:, None] + np.arange(4)).size * 3
+        inv = np.linalg.pinv(J.T @ J)
+        step = inv @ (J.T @ r)
+        # the rays' noise, plus how far this knot spacing alone would move the clocks
+        cov = cov + (float(r @ r) / max(r.size - spline - dt.shape[1], 1) * inv
+                     + np.outer(step, step)) / len(SPACINGS)
+    return cov
+
+
+def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
+                  events: list[dict]) -> list[dict]:
+    """Every stream's clock with uncertainty, per event (module docstring).
+
+    ``capture`` as from ``columns.solved_capture``; ``labels`` (N,) the images' events;
+    ``time`` (N,) and ``events`` (per event: ``event``, ``base``, ``reference_stream``) from
+    ``mocap_export.image_times``. Returns per event its ``event``, ``base``,
+    ``reference_stream`` and ``streams``: stream id -> ``offset``, ``offset_sd`` (reference
+    frames at the stream's frame 0, relative to the reference's frame 0), ``rate``, ``rate_sd``
+    (reference frames per own frame), ``base`` (the event's), ``images``; streams with fewer
+    than two frames are left out.
+    """
+    stream_ids = capture.stream_ids
+    out = []
+    for summary in events:
+        idx = np.flatnonzero(labels == summary["event"])
+        streams, frames, t = stream_ids[idx], capture.frame[idx], time[idx]
+        ref = summary["reference_stream"]
+        videos = [int(s) for s in np.unique(streams) if np.unique(frames[streams == s]).size >= 2]
+        entry = {"event": int(summary["event"]), "base": summary["base"],
+                 "reference_stream": ref, "streams": {}}
+        out.append(entry)
+        if ref is None:
+            continue
+        lines = _lines(t, streams, frames, videos)
+        a_ref = lines[ref][0]
+        free = [s for s in videos if s != ref]
+        sd = {}
+        if summary["base"] != "rank" and free:
+            cov = _ray_covariance(capture.subset(idx), t, streams, frames, free)
+            var = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            sd = {s: (float(var[k]), float(var[len(free) + k])) for k, s in enumerate(free)}
+        for s in videos:
+            a, b, a_sd, b_sd = lines[s]
+            if s == ref:
+                a_sd = b_sd = 0.0
+            elif s in sd:
+                a_sd, b_sd = sd[s]
+            entry["streams"][s] = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b,
+                                   "rate_sd": b_sd, "base": summary["base"],
+                                   "images": int((streams == s).sum())}
+    return out
+
+
+def check_fps(fps: Fps, streams: np.ndarray) -> None:
+    """One-line InputError for a non-positive or non-finite frame rate or a stream id that is
+    not among ``streams``."""
+    values = fps.items() if isinstance(fps, dict) else [] if fps is None else [(None, fps)]
+    known = {int(s) for s in np.unique(streams)}
+    for s, v in values:
+        if not (np.isfinite(v) and v > 0):
+            raise InputError(f"option --fps: must be a positive number, got {v!r}"
+                             + ("" if s is None else f" for stream {s}"))
+        if s is not None and s not in known:
+            raise InputError(f"option --fps: unknown stream {s} (streams: "
+                             f"{', '.join(map(str, sorted(known)))})")
+
+
+def stream_fps(fps: Fps, stream: int | None) -> float | None:
+    """The frame rate of ``stream`` from ``fps`` (None when unknown)."""
+    if fps is None or stream is None:
+        return None
+    return fps.get(stream) if isinstance(fps, dict) else float(fps)
+
+
+def sync_report(clocks: list[dict], fps: Fps) -> dict:
+    """``report.json``'s ``sync`` entry from :func:`stream_clocks` and the known frame rates:
+    ``time_unit`` (``s`` when every event's reference stream has a frame rate, else
+    ``frame``) and per event the clocks: ``offset`` / ``offset_sd`` in ``time_unit``,
+    ``offset_frames`` / ``offset_sd_frames`` in reference frames, where the reference's rate is
+    known ``offset_ms`` / ``offset_sd_ms`` and ``implied_fps`` (the reference's rate over
+    ``rate``), and where the stream's own is known ``fps`` (given)."""
+    refs = [stream_fps(fps, c["reference_stream"]) for c in clocks]
+    seconds = bool(refs) and all(r is not None for r in refs)
+    events = []
+    for c, ref_fps in zip(clocks, refs, strict=True):
+        streams = {}
+        for s, clock in c["streams"].items():
+            entry = {**clock, "offset_frames": clock["offset"],
+                     "offset_sd_frames": clock["offset_sd"]}
+            if seconds:
+                entry.update(offset=clock["offset"] / ref_fps,
+                             offset_sd=clock["offset_sd"] / ref_fps)
+            if ref_fps is not None:
+                entry["offset_ms"] = 1000.0 * clock["offset"] / ref_fps
+                entry["offset_sd_ms"] = 1000.0 * clock["offset_sd"] / ref_fps
+                entry["implied_fps"] = ref_fps / clock["rate"]
+            own = stream_fps(fps, s)
+            if own is not None:
+                entry["fps"] = own
+            streams[str(s)] = entry
+        events.append({**c, "reference_fps": ref_fps, "streams": streams})
+    return {"time_unit": "s" if seconds else "frame", "events": events}
+
+
+def times_in_unit(time: np.ndarray, labels: np.ndarray, report: dict, fps: Fps) -> np.ndarray:
+    """``time`` (N,) in reference frames in the unit of ``report`` (:func:`sync_report`):
+    seconds (each event's frames over its reference's rate) or frames as they are."""
+    if report["time_unit"] != "s":
+        return time
+    out = np.array(time, dtype=np.float64)
+    for event in report["events"]:
+        m = labels == event["event"]
+        out[m] = time[m] / stream_fps(fps, event["reference_stream"])
+    return out

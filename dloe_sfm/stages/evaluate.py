@@ -1,0 +1,59 @@
+"""Score a result against ground truth: a result file against a simulated capture's truth, or a
+``reconstruct`` output folder against a truth file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..evaluate import evaluate, evaluate_output
+from ..io import atomic_path, check_not_input, load_capture, load_result, load_truth
+
+
+def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
+    """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth), or
+    a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`)."""
+    if out is not None:
+        check_not_input(out, (result, capture))
+    if Path(result).is_dir():
+        scores = evaluate_output(result, capture)
+    else:
+        cap = load_capture(capture)
+        truth = load_truth(capture)
+        scores = evaluate(cap, truth, load_result(result), references=references)
+    if out is not None:
+        with atomic_path(out) as tmp:
+            tmp.write_text(json.dumps(scores, indent=2))
+    return scores
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("result", type=Path,
+                        help="result.npz, or a reconstruct output folder")
+    parser.add_argument("capture", type=Path,
+                        help="capture.npz with X_true and t_true; for a folder, a truth .npz "
+                             "with image_names, X_true (metres) and optionally t_true (s)")
+    parser.add_argument(
+        "--no-references",
+        dest="references",
+        action="store_false",
+        help="skip the oracle and pseudo-triangulation yardsticks",
+    )
+    parser.add_argument("--json", dest="out", type=Path, help="also write the scores as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    scores = main(args.result, args.capture, references=args.references, out=args.out)
+    width = max(len(k) for k in scores)
+    for k, v in scores.items():
+        print(f"{k:<{width}}  {v:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    from ..cli import run_stage
+
+    sys.exit(run_stage(__name__))

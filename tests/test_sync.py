@@ -1,0 +1,143 @@
+"""Sub-frame synchronisation (docs/interfaces.md, "Synchronisation"): stream clocks with
+uncertainty against simulated truth, ``--fps``, ``dloe-sfm sync``."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from dloe_sfm import reconstruct
+from dloe_sfm.cli import main as cli_main
+from dloe_sfm.core.options import Options
+from dloe_sfm.core.sync import check_fps
+from dloe_sfm.errors import InputError
+from dloe_sfm.export import export_outputs
+from dloe_sfm.stages.sync import parse_fps
+from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+
+RATES = (24.0, 25.0, 29.97, 30.0)
+OFFSET_TOLERANCE = 0.1
+"""Largest offset error on clean data, in reference frames."""
+
+
+@pytest.fixture(scope="module")
+def solved(assets_dir, tmp_path_factory):
+    """Walking at four rates from random start times, solved with default options and exported
+    with the true frame rates."""
+    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    capture, truth = simulate(seq, SimulationSettings(rates=RATES, random_offsets=True,
+                                                      duration=1.5, seed=1))
+    result = reconstruct(capture, Options())
+    out = tmp_path_factory.mktemp("sync") / "out"
+    fps = {k: r for k, r in enumerate(RATES)}
+    report = export_outputs(out, capture, result, plots=False, fps=fps)
+    return capture, truth, out, report
+
+
+def true_offsets(capture, truth, ref: int) -> dict[int, float]:
+    """Every stream's frame 0 in the reference stream's frames (its frame 0 = 0)."""
+    t0 = {int(s): truth.t[(capture.stream == s) & (capture.frame == 0)][0]
+          for s in np.unique(capture.stream)}
+    return {s: (t - t0[ref]) * RATES[ref] for s, t in t0.items()}
+
+
+def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solved):
+    capture, truth, _, report = solved
+    assert report["time_unit"] == "s"
+    event = report["sync"]["events"][0]
+    ref = event["reference_stream"]
+    truth_offsets = true_offsets(capture, truth, ref)
+    assert set(event["streams"]) == {"0", "1", "2", "3"}
+    for name, clock in event["streams"].items():
+        error = clock["offset_frames"] - truth_offsets[int(name)]
+        assert abs(error) < OFFSET_TOLERANCE, (name, error)
+        if int(name) == ref:
+            assert clock["offset_sd"] == 0.0 and clock["rate"] == 1.0
+            continue
+        assert abs(error) < 3 * clock["offset_sd_frames"], (name, error, clock)
+        assert clock["offset_ms"] == pytest.approx(1000 * clock["offset_frames"] / RATES[ref])
+        assert abs(clock["implied_fps"] - RATES[int(name)]) < 3 * RATES[ref] * clock["rate_sd"]
+    assert event["base"] in ("clock", "affine embedding")
+
+
+def test_sequence_times_are_seconds_with_fps(solved):
+    capture, truth, out, _ = solved
+    with open(out / "sequence.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    index = {str(n): i for i, n in enumerate(capture.image_names)}
+    t = np.array([float(r["time"]) for r in rows])
+    t_true = truth.t[[index[r["image"]] for r in rows]]
+    error = t - t_true
+    period = 1 / max(RATES)
+    assert np.sqrt(np.mean((error - error.mean()) ** 2)) < 0.1 * period
+
+
+@pytest.mark.parametrize(("values", "expected"), [
+    (None, None), (["30"], 30.0), (["0=30", "1=29.97"], {0: 30.0, 1: 29.97}),
+])
+def test_parse_fps(values, expected):
+    assert parse_fps(values) == expected
+
+
+@pytest.mark.parametrize(("values", "message"), [
+    (["0"], "positive"), (["nan"], "positive"), (["0=30", "1=-1"], "positive"),
+    (["cam=30"], "unknown stream 'cam'"), (["0=30", "0=25"], "twice"), (["30", "1=25"], "pairs"),
+])
+def test_parse_fps_errors_are_one_line(values, message):
+    with pytest.raises(InputError, match=message) as e:
+        parse_fps(values)
+    assert "\n" not in str(e.value)
+
+
+def test_unknown_stream_is_named():
+    with pytest.raises(InputError, match="unknown stream 7"):
+        check_fps({0: 30.0, 7: 25.0}, np.array([0, 0, 1, 1]))
+    check_fps({0: 30.0, 1: 25.0}, np.array([0, 0, 1, 1]))
+
+
+def test_sync_command_prints_and_round_trips_json(solved, tmp_path, capsys):
+    _, _, out, report = solved
+    target = tmp_path / "sync.json"
+    assert cli_main(["sync", str(out), "--json", str(target)]) == 0
+    printed = capsys.readouterr().out
+    event = report["sync"]["events"][0]
+    assert f"reference stream {event['reference_stream']}" in printed and "±" in printed
+    table = json.loads(target.read_text())
+    assert table["reference_stream"] == event["reference_stream"]
+    for name, clock in event["streams"].items():
+        entry = table["streams"][name]
+        assert entry["offset_frames"] == clock["offset_frames"]
+        assert entry["offset_s"] == pytest.approx(clock["offset_ms"] / 1000)
+        assert entry["rate"] == clock["rate"]
+    # an existing file: refused without --overwrite, replaced with it; --fps overrides
+    with pytest.raises(SystemExit) as e:
+        cli_main(["sync", str(out), "--json", str(target)])
+    assert e.value.code == 2
+    assert cli_main(["sync", str(out), "--json", str(target), "--overwrite", "--fps", "60"]) == 0
+    assert json.loads(target.read_text())["reference_fps"] == 60.0
+    other = tmp_path / "other.json"
+    other.write_text("{}")
+    for path in (other, out / "report.json"):
+        with pytest.raises(SystemExit) as e:
+            cli_main(["sync", str(out), "--json", str(path), "--overwrite"])
+        assert e.value.code == 2
+    assert other.read_text() == "{}"
+
+
+def test_sync_command_errors_are_one_line(tmp_path, capsys):
+    for folder, message in ((tmp_path / "missing", "no report.json"),
+                            (tmp_path, "cannot read it")):
+        if folder == tmp_path:
+            (tmp_path / "report.json").write_text("{not json")
+        with pytest.raises(SystemExit) as e:
+            cli_main(["sync", str(folder)])
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1
+    (tmp_path / "report.json").write_text(json.dumps({"images": 3}))
+    with pytest.raises(SystemExit):
+        cli_main(["sync", str(tmp_path)])
+    assert "no valid 'sync' entry" in capsys.readouterr().err
