@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -183,6 +184,39 @@ def _robust_report(capture: Capture, result: Result, subject_id: np.ndarray,
             "swaps_fixed": {"count": len(swaps), "swaps": swaps}}
 
 
+def supported_points(result: Result) -> np.ndarray:
+    """(N, P) X with NaN where the data do not support a point (``Result.supported``: unobserved
+    and weakly determined, or in an ``inconsistent`` image); X as is without the check."""
+    if result.supported is None:
+        return result.X
+    return np.where(result.supported[..., None], result.X, np.nan)
+
+
+def _image_report(capture: Capture, result: Result) -> dict:
+    """report.json's per-image checks (``core.assess``): ``image_status`` and ``image_checks``."""
+    if result.image_status is None:
+        return {}
+    names = capture.image_names
+    sd = np.where(capture.visible, result.depth_sd, np.nan)
+    images = {}
+    for i in result.order:
+        row = sd[i][np.isfinite(sd[i])]
+        images[str(names[i])] = {
+            "status": str(result.image_status[i]),
+            "reason": str(result.status_reason[i]),
+            "residual_px": float(result.residual_px[i]),
+            "neighbour_deviation": float(result.neighbour_deviation[i]),
+            "depth_sd_median": float(np.median(row)) if row.size else None,
+            "unsupported_points": int((~result.supported[i]).sum()),
+        }
+    status, counts = np.unique(result.image_status, return_counts=True)
+    flagged = result.image_status != "ok"
+    return {"image_status": {"counts": dict(zip(status.tolist(), counts.tolist(), strict=True)),
+                             "flagged": [str(names[i]) for i in result.order if flagged[i]],
+                             "unsupported_points": int((~result.supported).sum())},
+            "image_checks": images}
+
+
 def _check_shapes(capture: Capture, result: Result) -> None:
     """``capture`` as from ``solved_capture``."""
     n, p = capture.num_images, capture.num_points
@@ -238,6 +272,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     rank = result.rank
     visible = capture.visible
     errors = reprojection_errors(capture, result.X)
+    X = supported_points(result)
     subject_id, point_id = column_ids(result)
     num_layout = int(point_id.max()) + 1
     layout_names = (list(layout.point_names) if layout is not None
@@ -255,9 +290,10 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         (folder / "skeleton").mkdir()
     for i in progress.bar(result.order, desc="export frames", unit="image", leave=False):
         stem = frame_file_stem(int(rank[i]), str(names[i]), n)
-        finite = np.isfinite(result.X[i]).all(axis=1)
+        finite = np.isfinite(X[i]).all(axis=1)
         if not finite.any():
-            logger.warning("image %s: no finite 3D point, no frame file written", names[i])
+            logger.warning("image %s: no finite 3D point the data support, no frame file "
+                           "written", names[i])
             continue
         attributes = {"point_id": point_id[finite].astype(np.int32)}
         if subjects:
@@ -267,12 +303,12 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         if capture.confidence is not None:
             conf = np.nan_to_num(capture.confidence[i], nan=0.0).astype(np.float32)
             attributes["confidence"] = conf[finite]
-        write_point_cloud(folder / "frames" / f"{stem}.ply", result.X[i, finite],
+        write_point_cloud(folder / "frames" / f"{stem}.ply", X[i, finite],
                           colors=colors[finite], attributes=attributes)
         if edges.size:
             ok = finite[edges].all(axis=1)
             if ok.any():
-                write_line_set(folder / "skeleton" / f"{stem}.ply", result.X[i], edges[ok],
+                write_line_set(folder / "skeleton" / f"{stem}.ply", X[i], edges[ok],
                                colors[edges[ok, 0]])
 
     if static_xyz is not None and len(static_xyz):
@@ -281,10 +317,13 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                           colors=rgb)
 
     # point_names and edges are per column of X (a skeleton per subject)
-    save_npz(folder / "trajectories.npz", X=result.X, order=result.order.astype(np.int64),
+    save_npz(folder / "trajectories.npz", X=X, order=result.order.astype(np.int64),
              image_names=names.astype(str), events=result.events.astype(np.int64),
              rank=rank.astype(np.int64), observed=visible, point_names=np.array(point_names),
              edges=edges, embedding=result.embedding, reprojection_error=errors,
+             **({} if result.supported is None else
+                {"supported": result.supported, "depth_sd": result.depth_sd,
+                 "image_status": result.image_status.astype(str)}),
              **({"subject_id": subject_id, "point_id": point_id} if subjects else {}),
              **({} if detection_subject is None else {"detection_subject": detection_subject}))
 
@@ -293,12 +332,12 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         writer.writerow(["rank", "image", "point_id", "x", "y", "z", "observed", "subject_id"])
         for i in result.order:
             for k in range(p):
-                x, y, z = result.X[i, k]
+                x, y, z = X[i, k]
                 writer.writerow([int(rank[i]), names[i], int(point_id[k]), repr(float(x)),
                                  repr(float(y)), repr(float(z)), int(visible[i, k]),
                                  int(subject_id[k])])
 
-    times, mocap = write_mocap(folder, capture, result,
+    times, mocap = write_mocap(folder, capture, replace(result, X=X),
                                [f"s{s}_{name}" for s, name in zip(subject_id, point_names,
                                                                   strict=True)]
                                if subjects else point_names, export_rate=export_rate)
@@ -341,6 +380,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
             "per_image": {str(names[i]): error_stats(errors[i]) for i in result.order},
             "per_point": per_point,
         },
+        **_image_report(capture, result),
         "event_summaries": _event_summaries(capture, result, errors),
         "subject_summaries": _subject_summaries(capture, result, errors, subject_id),
         "mocap_export": mocap,

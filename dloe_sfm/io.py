@@ -231,10 +231,14 @@ TRUTH_KEYS = ("X_true", "t_true", "event_true", "subject_true", "outlier_true", 
               "x_clean", "parents")
 """Ground-truth keys of a capture file read by :func:`load_truth` (written by ``simulate``;
 for ``evaluate`` and the benchmarks); any other key is skipped without being decompressed."""
+CHECK_KEYS = ("image_status", "status_reason", "residual_px", "neighbour_deviation", "depth_sd",
+              "supported")
+"""Keys of the per-image checks (``core.assess``) in a result file: (N,) then (N, P)."""
+_TEXT_KEYS = ("image_status", "status_reason")
 RESULT_KEYS = ("X", "order", "A_data", "A_indices", "A_indptr", "W_data", "W_indices",
                "W_indptr", "D", "events", "embedding", "cost_history", "change_history",
                "seconds", "subject_id", "point_id", "assignment", "outliers", "swaps",
-               "outlier_residual_px")
+               "outlier_residual_px", *CHECK_KEYS)
 """Keys of a result file that are read (``result_arrays``); others are skipped."""
 _REAL = "biuf"  # bool, signed / unsigned integers, floats: no objects, strings or complex
 _KIND_NAMES = {"b": "bool", "i": "integers", "u": "unsigned integers", "f": "floats",
@@ -470,6 +474,9 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
             if (v := getattr(result, k)) is not None and np.size(v)
         },
         **({"outlier_residual_px": result.outlier_residual_px} if result.outliers.size else {}),
+        **({} if result.image_status is None else
+           {k: np.asarray(getattr(result, k)).astype(str) if k in _TEXT_KEYS
+            else np.asarray(getattr(result, k)) for k in CHECK_KEYS}),
     }
 
 
@@ -490,15 +497,20 @@ def load_result(path: Path | str) -> Result:
         if missing:
             raise InputError(f"{path}: not a result file, missing key(s) {', '.join(missing)}")
         keys = [k for k in RESULT_KEYS if k in npz.files]
+        if any(k in keys for k in CHECK_KEYS) and not all(k in keys for k in CHECK_KEYS):
+            raise InputError(f"{path}: keys {', '.join(CHECK_KEYS)} must be given together")
         integer = {"order", "events", "A_indices", "A_indptr", "W_indices", "W_indptr",
                    "subject_id", "point_id", "assignment", "outliers", "swaps"}
+        kinds = {k: "U" if k in _TEXT_KEYS else "iu" if k in integer else _REAL for k in keys}
         for k in keys:
-            npz.header(k, "iu" if k in integer else _REAL)
+            npz.header(k, kinds[k])
         X_shape = npz._headers["X"][0]
         if len(X_shape) != 3 or X_shape[-1] != 3:
             raise InputError(f"{path}: key 'X' must have shape (N, P, 3), got {X_shape}")
         n = X_shape[0]
-        expected = {"order": (n,), "events": (n,), "A_indptr": (n + 1,), "W_indptr": (n + 1,)}
+        expected = {"order": (n,), "events": (n,), "A_indptr": (n + 1,), "W_indptr": (n + 1,),
+                    **{k: (n,) for k in CHECK_KEYS[:4]},
+                    **{k: tuple(X_shape[:2]) for k in CHECK_KEYS[4:]}}
         for k in keys:
             shape = npz._headers[k][0]
             if k in expected and shape != expected[k]:
@@ -508,7 +520,7 @@ def load_result(path: Path | str) -> Result:
             _check_bound(npz, k, n * n if k[2:] in ("data", "indices")
                          else 4 * math.prod(X_shape) + SMALL_ARRAY, f"key 'X' {X_shape}")
         check_memory(_sizes(npz, keys), f"{path}: reading it")
-        out = {k: npz.read(k, "iu" if k in integer else _REAL) for k in keys}
+        out = {k: npz.read(k, kinds[k]) for k in keys}
     if not np.array_equal(np.sort(out["order"]), np.arange(n)):
         raise InputError(f"{path}: key 'order' is not a permutation of the {n} images")
     for name in ("A", "W"):
@@ -530,7 +542,9 @@ def load_result(path: Path | str) -> Result:
         raise InputError(f"{path}: key 'seconds' must be one number, got shape {seconds.shape}")
     empty = np.zeros(0)
     optional = {k: out[k] for k in ("subject_id", "point_id", "assignment", "outliers", "swaps",
-                                    "outlier_residual_px") if k in out}
+                                    "outlier_residual_px", *CHECK_KEYS) if k in out}
+    if "supported" in optional:
+        optional["supported"] = optional["supported"].astype(bool)
     return Result(
         X=out["X"], order=out["order"], A=out["A"], W=out.get("W", sp.csr_matrix((n, n))),
         D=out.get("D", empty), events=out.get("events", np.zeros(0, dtype=np.int64)),

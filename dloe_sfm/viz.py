@@ -120,6 +120,38 @@ def plot_affinity(result: Result, path: Path | str) -> Path:
     return _save(fig, path)
 
 
+def plot_reconstructability(result: Result, capture: Capture, path: Path | str) -> Path:
+    """Per image in estimated order: median depth sd of its observed points and its reprojection
+    residual (``core.assess``); ``uncertain`` / ``inconsistent`` images marked."""
+    order = result.order
+    sd = np.where(capture.visible, result.depth_sd, np.nan)[order]
+    seen = np.isfinite(sd).any(axis=1)
+    median_sd = np.full(order.size, np.nan)
+    median_sd[seen] = np.nanmedian(sd[seen], axis=1)
+    status = result.image_status[order]
+    fig = _figure(figsize=(9.0, 5.4))
+    ax_sd, ax_res = fig.subplots(2, 1, sharex=True)
+    rank = np.arange(order.size)
+    ax_sd.semilogy(rank, median_sd, ".", color="tab:blue", ms=3)
+    ax_sd.set_ylabel("median depth sd (world units)")
+    ax_res.plot(rank, result.residual_px[order], ".", color="tab:green", ms=3)
+    ax_res.set_ylabel("reprojection residual (px)")
+    ax_res.set_xlabel("image (estimated rank)")
+    for name, color in (("uncertain", "tab:orange"), ("inconsistent", "tab:red")):
+        k = np.flatnonzero(status == name)
+        if k.size:
+            for ax in (ax_sd, ax_res):
+                for r in k:
+                    ax.axvline(r, color=color, lw=0.8, alpha=0.6)
+            ax_sd.plot([], [], color=color, label=f"{name} ({k.size})")
+    if (status != "ok").any():
+        ax_sd.legend(loc="upper right", fontsize=8)
+    ax_sd.set_title(f"Reconstructability per image ({int((status != 'ok').sum())} of "
+                    f"{order.size} flagged)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def events_figure(result: Result) -> Figure:
     """The figure of ``plot_events``: every event's images in the 2D spectral embedding of that
     event's graph (``core.events``; the first coordinate orders an event in time, scaled to
@@ -506,6 +538,8 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
         plot_sequence(result, capture, folder / "sequence.png"),
         plot_affinity(result, folder / "affinity.png"),
         plot_events(result, folder / "events.png"),
+        *([] if result.image_status is None else
+          [plot_reconstructability(result, capture, folder / "reconstructability.png")]),
         plot_trajectories(result.X, result.order, folder / "trajectories.png",
                           point_names=None if point_names is None else
                           [point_names[j] for j in point_id],

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..baselines import high_pass_filter, pseudo_triangulation, sedl, trajectory_basis
+from ..core import alternation, pipeline
 from ..core.capture import Capture
 from ..core.options import Distance, Embedding, Options
 from ..core.problem import initialise
@@ -34,7 +35,7 @@ from ..core.solver import reconstruct
 from ..errors import InputError
 from ..evaluate import oracle_reconstruct, point_errors
 from ..synth import SimulationSettings, load_mocap, simulate
-from .suites import category
+from .suites import STAGES, category
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -119,11 +120,77 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+# (module, function, stage) wrapped by StageMeter; a solve_events inside robust_rounds is a
+# robust round, not the first alternation
+_METERED = (
+    (pipeline, "initialise", "init"),
+    (alternation, "initialise", "init"),
+    (pipeline, "initial_events", "events"),
+    (alternation, "segment_events", "events"),
+    (pipeline, "solve_events", "alternation"),
+    (pipeline, "robust_rounds", "robust rounds"),
+    (pipeline, "clocked", "clocks"),
+    (alternation, "sequence", "sequencing"),
+)
+
+
+class StageMeter:
+    """Wall seconds and peak-memory rise of every stage of the solves run inside it.
+
+    Wraps the pipeline's stage functions (:data:`_METERED`) while active. Time is exclusive: a
+    stage called inside another (sequencing inside the alternation, the alternation inside a
+    robust round) is charged to itself only, so the stages never overlap. ``rise_mb``:
+    how far each stage raised the process's peak resident set (its high-water mark), MB.
+    """
+
+    def __init__(self) -> None:
+        self.seconds = dict.fromkeys(STAGES, 0.0)
+        self.rise_mb = dict.fromkeys(STAGES, 0.0)
+        self._open: list[str] = []  # stages of the calls under way
+        self._stack: list[list[float]] = []  # per open call: [time, rise] of nested calls
+        self._saved: list[tuple] = []
+
+    def _wrap(self, fn: Callable, stage: str) -> Callable:
+        def metered(*args, **kwargs):
+            inside_robust = "robust rounds" in self._open
+            name = "robust rounds" if stage == "alternation" and inside_robust else stage
+            self._open.append(name)
+            self._stack.append([0.0, 0.0])
+            rss, t0 = _rss_mb(), time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                seconds, rise = time.perf_counter() - t0, _rss_mb() - rss
+                nested = self._stack.pop()
+                self._open.pop()
+                self.seconds[name] += seconds - nested[0]
+                self.rise_mb[name] += rise - nested[1]
+                if self._stack:
+                    self._stack[-1][0] += seconds
+                    self._stack[-1][1] += rise
+
+        return metered
+
+    def __enter__(self) -> StageMeter:
+        for module, attr, stage in _METERED:
+            fn = getattr(module, attr)
+            self._saved.append((module, attr, fn))
+            setattr(module, attr, self._wrap(fn, stage))
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for module, attr, fn in reversed(self._saved):
+            setattr(module, attr, fn)
+        self._saved.clear()
+
+
 def runtime_job(spec: dict) -> list[dict]:
-    """Time one DLOE solve in a fresh process; peak memory before and after the solve."""
+    """Time one DLOE solve in a fresh process: its steps, its stages (:class:`StageMeter`) and
+    the peak memory before and after the solve."""
     capture, truth = simulate(load_mocap(spec["motion"]), SimulationSettings(**spec["settings"]))
     before = _rss_mb()
-    result = reconstruct(capture, Options())
+    with StageMeter() as meter:
+        result = reconstruct(capture, Options())
     t = result.timings
     steps = t["w_step"] + t["d_step"] + t["x_step"]
     return [{"target": spec["setting"], "num_images": capture.num_images,
@@ -131,7 +198,8 @@ def runtime_job(spec: dict) -> list[dict]:
              "per_iteration": steps / max(result.nit, 1),
              **{f"{k}_per_iteration": t[k] / max(result.nit, 1)
                 for k in ("w_step", "d_step", "x_step")},
-             "timings": t, "rss_before_mb": before, "peak_rss_mb": _rss_mb(),
+             "timings": t, "stage_seconds": meter.seconds, "stage_rise_mb": meter.rise_mb,
+             "rss_before_mb": before, "peak_rss_mb": _rss_mb(),
              "error_mm": point_errors(result.X, truth.X, capture.visible)["error_mm"]}]
 
 

@@ -16,6 +16,7 @@ from matplotlib.figure import Figure
 
 from ..core.options import Distance, Embedding
 from ..io import atomic_path
+from .suites import STAGES
 
 
 def _stats(values: list[float]) -> dict[str, float]:
@@ -167,12 +168,18 @@ def fit_exponent(n: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 
 def summarise_runtime(records: list[dict]) -> dict:
+    """Growth exponents (log-log slope against N) of the whole solve, the steps per iteration,
+    every stage (``stage_seconds``, ``stage_rise_mb``) and the peak memory."""
     records = sorted(records, key=lambda r: r["num_images"])
     n = np.array([r["num_images"] for r in records], dtype=np.float64)
+    series = {key: [r[key] for r in records]
+              for key in ("seconds", "per_iteration", "w_step_per_iteration",
+                          "d_step_per_iteration", "x_step_per_iteration", "peak_rss_mb")}
+    for stage in STAGES:
+        series[f"{stage} s"] = [r["stage_seconds"][stage] for r in records]
     out = {"fits": {}}
-    for key in ("seconds", "per_iteration", "w_step_per_iteration", "d_step_per_iteration",
-                "x_step_per_iteration", "peak_rss_mb"):
-        y = np.array([r[key] for r in records])
+    for key, values in series.items():
+        y = np.array(values)
         if n.size >= 2 and (y > 0).all():
             slope, intercept = fit_exponent(n, y)
             out["fits"][key] = {"exponent": slope, "intercept": intercept}
@@ -180,17 +187,25 @@ def summarise_runtime(records: list[dict]) -> dict:
 
 
 def runtime_table(records: list[dict], summary: dict) -> str:
+    """Markdown: per size the steps per iteration, then every stage's seconds and peak-memory
+    rise, then the growth exponents."""
+    records = sorted(records, key=lambda r: r["num_images"])
     lines = ["| N images | iterations | total s | per iteration s | W-step s/it | D-step s/it | "
              "X-step s/it | peak RSS MB | error mm |", "|---|" + "---|" * 8]
-    for r in sorted(records, key=lambda r: r["num_images"]):
+    for r in records:
         lines.append(f"| {r['num_images']} | {r['nit']} | {r['seconds']:.2f} | "
                      f"{r['per_iteration']:.3f} | {r['w_step_per_iteration']:.3f} | "
                      f"{r['d_step_per_iteration']:.4f} | {r['x_step_per_iteration']:.3f} | "
                      f"{r['peak_rss_mb']:.0f} | {r['error_mm']:.2f} |")
-    fits = summary["fits"]
+    lines += ["", "Stages: seconds (exclusive) / rise of the peak RSS, MB", "",
+              "| N images | " + " | ".join(STAGES) + " |", "|---|" + "---|" * len(STAGES)]
+    for r in records:
+        lines.append(f"| {r['num_images']} | " + " | ".join(
+            f"{r['stage_seconds'][s]:.2f} s / {r['stage_rise_mb'][s]:.0f}" for s in STAGES)
+            + " |")
     lines.append("")
     lines.append("Fitted growth exponents (log-log slope against N): " + ", ".join(
-        f"{k} {v['exponent']:.2f}" for k, v in fits.items()))
+        f"{k} {v['exponent']:.2f}" for k, v in summary["fits"].items()))
     return "\n".join(lines)
 
 

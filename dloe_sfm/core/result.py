@@ -39,7 +39,8 @@ class Result:
     seconds : float
         Wall time of the solve.
     timings : dict
-        Seconds spent per stage (init, w_step, d_step, x_step, sequencing, ...).
+        Seconds spent per stage (init, w_step, d_step, x_step, sequencing, ..., assess: the
+        per-image checks, which ``seconds`` does not include).
     scale : float
         The normalisation length (median camera-to-scene distance, world units).
     noise_px : float
@@ -63,6 +64,23 @@ class Result:
     solved : Capture or None
         The (N, P', 2) observations X refers to (subjects aggregated, swaps undone); None when
         that is the input capture itself.
+    image_status : (N,) str or None
+        Per-image check of the solution (``core.assess``): ``ok``, ``uncertain`` (the data
+        determine its shape weakly) or ``inconsistent`` (its shape disagrees with its rays or
+        its temporal neighbours far beyond the capture's own spread)...
+    status_reason : (N,) str or None
+        ...why ("" when ok).
+    residual_px : (N,) float or None
+        Median reprojection residual of each image's observed points in its own camera, pixels.
+    neighbour_deviation : (N,) float or None
+        RMS distance of each image's points from its graph neighbours' prediction ``W X``, in
+        typical neighbour steps (NaN: no neighbour).
+    depth_sd : (N, P') float or None
+        Standard deviation of every observed point's depth along its ray (of every unobserved
+        point's position) given the rays and the graph, world units.
+    supported : (N, P') bool or None
+        Points the data support: False where unobserved and weakly determined, or in an
+        ``inconsistent`` image (NaN in the exports).
     """
 
     X: np.ndarray
@@ -89,6 +107,12 @@ class Result:
     outlier_residual_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     swaps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
     solved: Capture | None = None
+    image_status: np.ndarray | None = None
+    status_reason: np.ndarray | None = None
+    residual_px: np.ndarray | None = None
+    neighbour_deviation: np.ndarray | None = None
+    depth_sd: np.ndarray | None = None
+    supported: np.ndarray | None = None
 
     @property
     def rank(self) -> np.ndarray:

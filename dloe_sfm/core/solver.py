@@ -9,6 +9,7 @@ same pipeline.
 from __future__ import annotations
 
 from .alternation import Progress
+from .assess import assess
 from .capture import Capture
 from .multitarget import reconstruct_subjects
 from .options import Options
@@ -22,10 +23,13 @@ def reconstruct(
     """Estimate every image's 3D points and the images' temporal graph and order.
 
     ``capture`` must be valid (``Capture.validate``). Returns a new :class:`Result` in world
-    units. ``progress(done, total, info)`` is called after every sweep of every solve (see
+    units, every image checked and its reconstructability measured (:func:`.assess.assess`).
+    ``progress(done, total, info)`` is called after every sweep of every solve (see
     :data:`dloe_sfm.core.alternation.Progress`).
     """
     options = options or Options()
     if capture.x.ndim == 4:
-        return reconstruct_subjects(capture, options, progress=progress)
-    return solve_single(capture, options, progress)
+        result = reconstruct_subjects(capture, options, progress=progress)
+    else:
+        result = solve_single(capture, options, progress)
+    return assess(capture, result, lambda1=options.lambda1)

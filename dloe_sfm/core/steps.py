@@ -187,11 +187,11 @@ def x_step(
     """
     n, p = prob.rays.shape[:2]
     Q = smoothness_matrix(W, D, lambda1)
-    Q3 = sp.kron(Q, sp.identity(3), format="csr")
+    hard = np.isinf(lambda2)
+    Q3 = sp.kron(Q, sp.identity(3), format="csr") if hard else None
     vis = prob.visible
     r0 = np.nan_to_num(prob.rays)
     X = np.empty((n, p, 3))
-    hard = np.isinf(lambda2)
     reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
     for j in range(p):
         if hard:
@@ -217,16 +217,11 @@ def x_step(
             c = np.where(obs[:, None], prob.C, 0.0).ravel()
             H = sp.csc_matrix(Bm.T @ Q3 @ Bm)
             rhs = -(Bm.T @ (Q3 @ c))
+            H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
         else:
-            wgt = lambda2 * prob.weights[:, j]
-            rr = r0[:, j]
-            P_perp = np.eye(3)[None] - rr[:, :, None] * rr[:, None, :]  # (N, 3, 3)
-            ray_term = sp.block_diag(list(wgt[:, None, None] * P_perp), format="csr")
-            H = sp.csc_matrix(Q3 + ray_term)
-            rhs = ray_term @ prob.C.ravel()
+            H, rhs = _soft_system(Q, r0[:, j], prob.C, lambda2 * prob.weights[:, j], reg)
             c = np.zeros(3 * n)
             Bm = None
-        H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
         # symmetric mode + minimum degree on A^T + A: faster than SuperLU's defaults here
         # (docs/method.md, "Speed")
         lu = spla.splu(
@@ -237,6 +232,44 @@ def x_step(
     bad = ~np.isfinite(X)
     X[bad] = X_prev[bad]
     return X
+
+
+def _soft_system(
+    Q: sp.csr_matrix, r: np.ndarray, C: np.ndarray, wgt: np.ndarray, reg: float
+) -> tuple[sp.csc_matrix, np.ndarray]:
+    """(H, rhs) of one point with soft rays r (N, 3) of weights ``wgt`` (N,), 3 unknowns per
+    image: ``H = kron(Q, I3) + blockdiag(w_n (I - r_n r_n^T)) + reg I``, ``rhs`` the block
+    diagonal times C.
+
+    Assembled entry by entry with the floating-point operations (and their order) of those
+    sparse sums and products, exact zeros left out as they leave them out, without building the
+    N blocks as sparse matrices.
+    """
+    n = r.shape[0]
+    P_perp = np.eye(3)[None] - r[:, :, None] * r[:, None, :]  # (N, 3, 3)
+    ray = wgt[:, None, None] * P_perp
+    coo = Q.tocoo()
+    qi, qk, q = coo.row.astype(np.int64), coo.col.astype(np.int64), coo.data
+    three = np.arange(3)
+    off = qi != qk
+    block = ray.copy()
+    on = qi[~off][:, None]
+    block[on, three, three] = q[~off][:, None] + ray[on, three, three]
+    diag = np.broadcast_to(three[:, None] == three[None, :], (n, 3, 3)).ravel()
+    base = 3 * np.arange(n)[:, None, None]
+    rows = np.concatenate([(3 * qi[off][:, None] + three).ravel(),
+                           np.broadcast_to(base + three[:, None], (n, 3, 3)).ravel()])
+    cols = np.concatenate([(3 * qk[off][:, None] + three).ravel(),
+                           np.broadcast_to(base + three[None, :], (n, 3, 3)).ravel()])
+    vals = np.concatenate([np.repeat(q[off], 3), block.ravel()])
+    on_diag = np.concatenate([np.zeros(3 * int(off.sum()), dtype=bool), diag])
+    vals = np.where(on_diag, vals + reg, vals)
+    keep = vals != 0
+    H = sp.csc_matrix((vals[keep], (rows[keep], cols[keep])), shape=(3 * n, 3 * n))
+    rhs = (
+        (0.0 + ray[:, :, 0] * C[:, None, 0]) + ray[:, :, 1] * C[:, None, 1]
+    ) + ray[:, :, 2] * C[:, None, 2]
+    return H, rhs.ravel()
 
 
 def total_cost(

@@ -109,6 +109,11 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     timings["solve"] = time.perf_counter() - tic
     logger.info("DLOE: %s (%d iterations, %.2f s, %d event(s))", result.message, result.nit,
                 result.seconds, np.unique(result.events).size)
+    flagged = result.image_status != "ok"
+    if flagged.any():
+        logger.warning("%d image(s) flagged (%d inconsistent: their points NaN in the exports): "
+                       "see report.json image_checks", int(flagged.sum()),
+                       int((result.image_status == "inconsistent").sum()))
 
     report = {
         "dloe_sfm_version": __version__,

@@ -65,6 +65,8 @@ class RenderCamera:
     cx: float = WIDTH / 2
     cy: float = HEIGHT / 2
     k: float = RADIAL_K
+    width: int = WIDTH
+    height: int = HEIGHT
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (..., 3) -> COLMAP pixel coordinates (..., 2); NaN behind the camera."""
@@ -76,8 +78,8 @@ class RenderCamera:
 
     def rays(self, ss: int) -> np.ndarray:
         """(H*ss, W*ss, 3) unit world directions of the sub-pixel samples."""
-        u = (np.arange(WIDTH * ss) + 0.5) / ss
-        v = (np.arange(HEIGHT * ss) + 0.5) / ss
+        u = (np.arange(self.width * ss) + 0.5) / ss
+        v = (np.arange(self.height * ss) + 0.5) / ss
         xd = (u[None, :] - self.cx) / self.f
         yd = (v[:, None] - self.cy) / self.f
         xd, yd = np.broadcast_arrays(xd, yd)
@@ -280,7 +282,7 @@ def render_markers(rgb: np.ndarray, depth: np.ndarray, rays: np.ndarray, cam: Re
     Returns the image and the (P,) visible fraction of each sphere's silhouette (0 = hidden or
     out of view); ray-sphere intersection per sample, so occlusion is exact.
     """
-    ss = rays.shape[0] // HEIGHT
+    ss = rays.shape[0] // cam.height
     out, zbuf = rgb.copy(), depth.copy()
     owner = np.full(depth.shape, -1, np.int32)
     silhouette = np.zeros(len(X))
@@ -294,7 +296,7 @@ def render_markers(rgb: np.ndarray, depth: np.ndarray, rays: np.ndarray, cam: Re
         u0, u1 = (np.array([pix[p, 0] - r_pix, pix[p, 0] + r_pix]) * ss).astype(int)
         v0, v1 = (np.array([pix[p, 1] - r_pix, pix[p, 1] + r_pix]) * ss).astype(int)
         u0, v0 = max(u0, 0), max(v0, 0)
-        u1, v1 = min(u1, WIDTH * ss), min(v1, HEIGHT * ss)
+        u1, v1 = min(u1, cam.width * ss), min(v1, cam.height * ss)
         if u1 <= u0 or v1 <= v0:
             continue
         d = rays[v0:v1, u0:u1].astype(np.float64)
@@ -317,8 +319,9 @@ def render_markers(rgb: np.ndarray, depth: np.ndarray, rays: np.ndarray, cam: Re
 
 
 def downsample(rgb: np.ndarray, ss: int) -> np.ndarray:
-    """Box-filter the supersampled render to (H, W, 3)."""
-    return rgb.reshape(HEIGHT, ss, WIDTH, ss, 3).mean(axis=(1, 3))
+    """Box-filter the supersampled render (H*ss, W*ss, 3) to (H, W, 3)."""
+    height, width = rgb.shape[0] // ss, rgb.shape[1] // ss
+    return rgb.reshape(height, ss, width, ss, 3).mean(axis=(1, 3))
 
 
 # --------------------------------------------------------------------------- marker detection
@@ -360,12 +363,13 @@ def detect_markers(bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- SfM
 
 
-def sfm_model(images: Path, work: Path, seed: int) -> pycolmap.Reconstruction:
+def sfm_model(images: Path, work: Path, seed: int, cam: RenderCamera) -> pycolmap.Reconstruction:
     """``dloe_sfm.colmap.run_sfm`` into ``work/sfm``: one COLMAP camera per camera folder with the
-    true intrinsics held fixed, exhaustive matching, global mapping; returns the largest model."""
+    true intrinsics (``cam``'s, shared by every camera) held fixed, a pose per image, exhaustive
+    matching, global mapping; returns the largest model."""
     workspace = run_sfm(
         images, work / "sfm", camera_mode="per_folder", camera_model="SIMPLE_RADIAL",
-        camera_params=(FOCAL, WIDTH / 2, HEIGHT / 2, RADIAL_K), mapper="global",
+        camera_params=(cam.f, cam.cx, cam.cy, cam.k), mapper="global",
         max_num_features=MAX_FEATURES,
         # Upsampled first octave: 2-3x the matches across the 60 degree baselines and a third of
         # the rotation error of first_octave = 0, for 2-3x the extraction and matching time.
@@ -386,19 +390,26 @@ def align_to_truth(rec: pycolmap.Reconstruction, names: list[str], centres: np.n
     rec.transform(sim3)
 
 
-def without_unused_points2D(rec: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
+def without_unused_points2D(rec: pycolmap.Reconstruction, max_points3D: int | None = None
+                            ) -> pycolmap.Reconstruction:
     """The registered images with only the keypoints that observe a 3D point.
 
     Keypoints without a 3D point are three quarters of ``images.bin`` and nothing downstream
-    reads them; dropping them keeps the bundled model small.
+    reads them; dropping them keeps the bundled model small. ``max_points3D`` keeps only that
+    many 3D points, the longest tracks, ties broken by position (the static scene is only drawn
+    in plots).
     """
+    points = rec.points3D
+    by_length = sorted(points, key=lambda i: (-points[i].track.length(), *points[i].xyz))
+    keep = set(by_length[:max_points3D])
     out = pycolmap.Reconstruction()
     for camera in rec.cameras.values():
         out.add_camera_with_trivial_rig(camera)
     new_index = {}
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
-        used = [i for i, p in enumerate(image.points2D) if p.has_point3D()]
+        used = [i for i, p in enumerate(image.points2D)
+                if p.has_point3D() and p.point3D_id in keep]
         new_index.update({(image_id, i): j for j, i in enumerate(used)})
         keypoints = np.array([image.points2D[i].xy for i in used]).reshape(-1, 2)
         out.add_image_with_trivial_frame(
@@ -406,7 +417,9 @@ def without_unused_points2D(rec: pycolmap.Reconstruction) -> pycolmap.Reconstruc
                            image_id=image_id),
             image.cam_from_world(),
         )
-    for point in rec.points3D.values():
+    for point_id, point in rec.points3D.items():
+        if point_id not in keep:
+            continue
         track = pycolmap.Track([
             pycolmap.TrackElement(el.image_id, new_index[el.image_id, el.point2D_idx])
             for el in point.track.elements
@@ -425,34 +438,115 @@ def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the pipeline
 
 
-def render_frames(images: Path, seed: int) -> dict[str, np.ndarray]:
+@dataclass(kw_only=True)
+class FieldSettings:
+    """Field mode: handheld cameras, each at its own frame rate, starting at random times.
+
+    The number of cameras, their places on the ring, rates, start times and shake are drawn from
+    the seed (a generator of its own, so the room and the sensor noise are the demo's for the
+    same seed). Each camera films from its start until ``duration``; every frame has its own pose:
+    the base pose on the ring moved by a smooth random motion (three random sinusoids of
+    0.3-1.5 Hz per axis) of ``shake_m`` RMS per axis for the centre and ``shake_deg`` RMS per
+    axis for the orientation.
+    """
+
+    cameras: tuple[int, int] = (4, 6)  # drawn in [min, max]
+    rates_hz: tuple[float, float] = (8.0, 12.0)  # drawn uniformly: non-commensurate
+    max_start: float = 0.2  # s, start times drawn in [0, max_start]
+    duration: float = 1.2  # s
+    arc_deg: float = 180.0  # the cameras share this arc of the ring, jittered evenly
+    shake_m: float = 0.03
+    shake_deg: float = 2.0
+    width: int = 480
+    height: int = 360
+    supersampling: int = 2  # rays per pixel along each axis
+    max_points3D: int | None = None  # of the written model (None: all), to keep assets/ small
+
+
+def demo_shots() -> list[list[tuple[float, RenderCamera]]]:
+    """The demo's frames per camera, (time, camera): static cameras at one rate, staggered."""
+    return [[((k + c / NUM_CAMERAS) * FRAME_PERIOD, cam) for k in range(NUM_FRAMES)]
+            for c, cam in enumerate(ring_cameras())]
+
+
+def rotation_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (3,) in radians (Rodrigues)."""
+    angle = np.linalg.norm(w)
+    if angle == 0:
+        return np.eye(3)
+    a = w / angle
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def wobble(rng: np.random.Generator, t: np.ndarray, rms: float) -> np.ndarray:
+    """(len(t), 3) smooth random motion: three random sinusoids per axis, ``rms`` per axis."""
+    freq = rng.uniform(0.3, 1.5, (3, 3))
+    phase = rng.uniform(0, 2 * np.pi, (3, 3))
+    weight = rng.normal(size=(3, 3))
+    motion = (weight * np.sin(2 * np.pi * freq * t[:, None, None] + phase)).sum(axis=1)
+    return rms * motion / np.sqrt((weight**2).sum(axis=0) / 2)
+
+
+def field_shots(field: FieldSettings, seed: int) -> list[list[tuple[float, RenderCamera]]]:
+    """Field mode's frames per camera, (time, camera), every frame its own handheld pose."""
+    rng = np.random.default_rng([seed, 1])
+    n = int(rng.integers(field.cameras[0], field.cameras[1] + 1))
+    spacing = field.arc_deg / n
+    angles = np.deg2rad(-field.arc_deg / 2 + spacing * (np.arange(n) + 0.5
+                                                        + rng.uniform(-0.2, 0.2, n)))
+    rates = rng.uniform(*field.rates_hz, n)
+    starts = rng.uniform(0, field.max_start, n)
+    scale = field.width / WIDTH
+    target = np.array(LOOK_AT)
+    shots = []
+    for a, rate, start in zip(angles, rates, starts, strict=True):
+        t = start + np.arange(int(np.ceil((field.duration - start) * rate))) / rate
+        base = np.array([RING_RADIUS * np.cos(a), RING_RADIUS * np.sin(a), CAMERA_HEIGHT])
+        R_base = look_at(base, target)
+        centres = base + wobble(rng, t, field.shake_m)
+        turns = wobble(rng, t, np.deg2rad(field.shake_deg))
+        shots.append([(float(tk), RenderCamera(
+            R=rotation_exp(w) @ R_base, C=C, f=FOCAL * scale, cx=field.width / 2,
+            cy=field.height / 2, width=field.width, height=field.height))
+            for tk, C, w in zip(t, centres, turns, strict=True)])
+    return shots
+
+
+def render_frames(images: Path, seed: int, field: FieldSettings | None = None
+                  ) -> tuple[dict[str, np.ndarray], list[RenderCamera]]:
     """Render every camera's frames as JPEGs under ``images/cam<c>/<k>.jpg``; returns the truth
-    per image in name order (names, stream, frame, t, X, visible fraction)."""
+    per image in name order (names, stream, frame, t, X, visible fraction; in field mode also
+    the stream's frame rate) and the camera of each image."""
     rng = np.random.default_rng(seed)
     quads = room(rng)
-    cams = ring_cameras()
+    shots = demo_shots() if field is None else field_shots(field, seed)
+    ss = SUPERSAMPLING if field is None else field.supersampling
     colours = marker_rgb()
     # Full-resolution chroma: 4:2:0 subsampling doubles the marker detection error.
     jpeg = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY,
             cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
     rows = []
-    for c, cam in enumerate(cams):
-        rays = cam.rays(SUPERSAMPLING)
-        static, depth = render_static(quads, cam, rays)
+    for c, frames in enumerate(shots):
         (images / f"cam{c}").mkdir(parents=True, exist_ok=True)
-        for k in range(NUM_FRAMES):
-            t = (k + c / NUM_CAMERAS) * FRAME_PERIOD
+        rate = 1 / (frames[1][0] - frames[0][0]) if len(frames) > 1 else np.nan
+        seen = None
+        for k, (t, cam) in enumerate(frames):
+            if cam is not seen:  # a static camera renders the room once
+                rays = cam.rays(ss)
+                static, depth = render_static(quads, cam, rays)
+                seen = cam
             X = marker_positions(t)
             img, fraction = render_markers(static, depth, rays, cam, X, colours)
-            img = downsample(img, SUPERSAMPLING) * 255
+            img = downsample(img, ss) * 255
             img += rng.normal(0, NOISE_SIGMA, img.shape)
             name = f"cam{c}/{k:03d}.jpg"
             bgr = np.clip(img + 0.5, 0, 255).astype(np.uint8)[..., ::-1]
             cv2.imwrite(str(images / name), bgr, jpeg)
-            rows.append((name, c, k, t, X, fraction))
-        logger.info("rendered camera %d", c)
+            rows.append((name, c, k, t, X, fraction, rate, cam))
+        logger.info("rendered camera %d (%d frames)", c, len(frames))
     rows.sort(key=lambda r: r[0])
-    return {
+    truth = {
         "image_names": np.array([r[0] for r in rows]),
         "stream": np.array([r[1] for r in rows], np.int64),
         "frame": np.array([r[2] for r in rows], np.int64),
@@ -460,6 +554,9 @@ def render_frames(images: Path, seed: int) -> dict[str, np.ndarray]:
         "X_true": np.stack([r[4] for r in rows]),
         "visible_fraction": np.stack([r[5] for r in rows]),
     }
+    if field is not None:
+        truth["frame_rate"] = np.array([r[6] for r in rows])
+    return truth, [r[7] for r in rows]
 
 
 def write_keypoints(path: Path, images: Path, names: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -480,43 +577,46 @@ def write_keypoints(path: Path, images: Path, names: np.ndarray) -> tuple[np.nda
     return found, scores
 
 
-def main(out: Path, *, seed: int = 0, overwrite: bool = False) -> Path:
-    """Build the demo workspace at ``out``; returns ``out``."""
+def main(out: Path, *, seed: int = 0, overwrite: bool = False,
+         field: FieldSettings | None = None) -> Path:
+    """Build the demo workspace at ``out`` (with ``field``, a field workspace: handheld
+    cameras at their own rates); returns ``out``."""
     out = Path(out)
     if out.exists() and not overwrite:
         logger.info("%s exists, pass overwrite=True to rebuild it", out)
         return out
     start = time.perf_counter()
-    cams = ring_cameras()
     with tempfile.TemporaryDirectory() as tmp:
         stage = Path(tmp) / "demo"
         images = stage / "images"
-        truth = render_frames(images, seed)
+        truth, views = render_frames(images, seed, field)
         names = [str(n) for n in truth["image_names"]]
         rendered = time.perf_counter()
-        rec = sfm_model(images, Path(tmp), seed)
+        rec = sfm_model(images, Path(tmp), seed, views[0])
         mapped = time.perf_counter()
 
-        C_all = np.stack([cams[s].C for s in truth["stream"]])
+        C_all = np.stack([v.C for v in views])
         align_to_truth(rec, names, C_all)
         registered = {rec.image(i).name: rec.image(i) for i in rec.reg_image_ids()}
         keep = np.array([n in registered for n in names])
         truth = {k: v[keep] for k, v in truth.items()}
+        views = [v for v, kept in zip(views, keep, strict=True) if kept]
         names = [str(n) for n in truth["image_names"]]
-        R_true = np.stack([cams[s].R for s in truth["stream"]])
+        R_true = np.stack([v.R for v in views])
         C_true = C_all[keep]
         R_est = np.stack([registered[n].cam_from_world().rotation.matrix() for n in names])
         C_est = np.stack([registered[n].projection_center() for n in names])
         (stage / "sparse" / "0").mkdir(parents=True)
-        without_unused_points2D(rec).write(stage / "sparse" / "0")
+        without_unused_points2D(rec, None if field is None else field.max_points3D).write(
+            stage / "sparse" / "0")
 
         found, scores = write_keypoints(stage / "keypoints.csv", images, truth["image_names"])
-        x_true = np.stack([cams[s].project(X) for s, X in zip(truth["stream"], truth["X_true"],
-                                                                  strict=True)]) - 0.5
+        x_true = np.stack([v.project(X) for v, X in zip(views, truth["X_true"],
+                                                        strict=True)]) - 0.5
         x_true[truth["visible_fraction"] == 0] = np.nan
         np.savez_compressed(
             stage / "ground_truth.npz", **truth, x_true=x_true, R_true=R_true, C_true=C_true,
-            camera_params=np.array([[c.f, c.cx, c.cy, c.k] for c in cams])[truth["stream"]],
+            camera_params=np.array([[v.f, v.cx, v.cy, v.k] for v in views]),
             marker_names=np.array(MARKER_NAMES),
         )
 
@@ -545,7 +645,10 @@ def main(out: Path, *, seed: int = 0, overwrite: bool = False) -> Path:
             "error_model": model_err[np.isfinite(model_err)],
             "images_bytes": sum(f.stat().st_size for f in images.rglob("*.jpg")),
         }
-        (stage / "README.md").write_text(readme(stats))
+        if field is not None:
+            stats.update(field_stats(truth, views))
+        (stage / "README.md").write_text(readme(stats) if field is None
+                                         else field_readme(stats, field, seed))
         if out.exists():
             shutil.rmtree(out)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -613,12 +716,78 @@ global mapping); regenerate from the repository root with
 """
 
 
+def field_stats(truth: dict[str, np.ndarray], views: list[RenderCamera]) -> dict:
+    """Per camera of a field workspace: frame rate, start time, frames, spread of the poses."""
+    cameras = []
+    for c in np.unique(truth["stream"]):
+        sel = np.flatnonzero(truth["stream"] == c)
+        C = np.stack([views[i].C for i in sel])
+        R = np.stack([views[i].R for i in sel])
+        mean_R = np.linalg.svd(R.mean(axis=0))
+        mean_R = mean_R[0] @ mean_R[2]
+        cameras.append({
+            "camera": int(c), "rate_hz": float(truth["frame_rate"][sel[0]]),
+            "start_s": float(truth["t_true"][sel].min()), "frames": len(sel),
+            "centre_rms_mm": 1000 * float(np.sqrt(((C - C.mean(axis=0)) ** 2).sum(axis=1).mean())),
+            "rotation_rms_deg": float(np.sqrt((rotation_angle_deg(R, mean_R[None]) ** 2).mean())),
+        })
+    return {"cameras": cameras}
+
+
+def field_readme(stats: dict, field: FieldSettings, seed: int) -> str:
+    """The README of a field workspace with the drawn cameras and the measured statistics."""
+    rows = "\n".join(
+        f"| cam{c['camera']} | {c['rate_hz']:.3f} | {c['start_s'] * 1000:.0f} | {c['frames']} "
+        f"| {c['centre_rms_mm']:.0f} | {c['rotation_rms_deg']:.1f} |" for c in stats["cameras"])
+    demo = readme(stats)
+    measured = demo[demo.index("## Measured on this build"):]
+    f = FOCAL * field.width / WIDTH
+    flags = (f"--cameras {field.cameras[0]} {field.cameras[1]} --duration {field.duration:g} "
+             + ("" if field.max_points3D is None else f"--max-points3d {field.max_points3D} "))
+    return f"""# Field workspace: handheld cameras at their own frame rates, eight moving markers
+
+A rendered COLMAP workspace like `assets/demo` (same room, markers, detector and SfM), in field
+mode (`FieldSettings` of `pipelines/make_demo_assets/pipeline.py`, seed {seed}):
+{len(stats["cameras"])} handheld cameras ({field.width}x{field.height}, f = {f:g} px,
+SIMPLE_RADIAL k = {RADIAL_K:g}) on a {field.arc_deg:g} degree arc of the {RING_RADIUS:g} m
+ring, each at its own frame rate (drawn in {field.rates_hz[0]:g}-{field.rates_hz[1]:g} Hz),
+starting at a random time in [0, {field.max_start:g}] s and filming until {field.duration:g} s.
+Every frame has its own
+pose: the base pose moved by a smooth random motion of {field.shake_m * 100:g} cm RMS per axis
+(centre) and {field.shake_deg:g} degrees RMS per axis (orientation). One COLMAP camera per folder
+(shared intrinsics, held fixed at the true ones), one pose per image. Made by
+
+    python pipelines/make_demo_assets/pipeline.py --field --seed {seed} {flags}--out DIR
+
+| camera | rate (Hz) | start (ms) | frames | centre spread RMS (mm) | rotation spread RMS (deg) |
+|---|---|---|---|---|---|
+{rows}
+
+Files as in `assets/demo` (see its README); `ground_truth.npz` has in addition `frame_rate` (N,),
+the frame rate of each image's camera in Hz, and `R_true`, `C_true` differ from image to image.
+
+{measured}"""
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("assets/demo"))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument("--field", action="store_true",
+                        help="field mode: handheld cameras at their own rates (FieldSettings)")
+    parser.add_argument("--cameras", type=int, nargs=2, metavar=("MIN", "MAX"),
+                        help="field mode: number of cameras drawn in [MIN, MAX] (default 4 6)")
+    parser.add_argument("--duration", type=float, metavar="S",
+                        help="field mode: the cameras film until S seconds (default 1.2)")
+    parser.add_argument("--max-points3d", type=int, metavar="M",
+                        help="field mode: write only the M 3D points of the longest tracks")
     args = parser.parse_args()
     logging.basicConfig(format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
                         datefmt="%Y/%m/%d %H:%M:%S", level=logging.INFO)
-    main(args.out, seed=args.seed, overwrite=args.overwrite)
+    settings = None
+    if args.field:
+        cameras = {} if args.cameras is None else {"cameras": tuple(args.cameras)}
+        duration = {} if args.duration is None else {"duration": args.duration}
+        settings = FieldSettings(**cameras, **duration, max_points3D=args.max_points3d)
+    main(args.out, seed=args.seed, overwrite=args.overwrite, field=settings)

@@ -1,0 +1,65 @@
+"""Speed work that must not change a result: the X-step's soft-ray systems assembled entry by
+entry equal the sparse products they replace bit for bit, and the runtime suite's stage meter
+times a solve without touching it."""
+
+import numpy as np
+import scipy.sparse as sp
+
+from dloe_sfm.benchmark.jobs import StageMeter
+from dloe_sfm.benchmark.suites import STAGES
+from dloe_sfm.core import alternation, pipeline
+from dloe_sfm.core.options import Options
+from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.core.steps import _soft_system
+from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
+
+
+def _sparse_products(Q, r, C, wgt, reg):
+    """The soft-ray system as the X-step built it from sparse sums and products."""
+    P_perp = np.eye(3)[None] - r[:, :, None] * r[:, None, :]
+    ray_term = sp.block_diag(list(wgt[:, None, None] * P_perp), format="csr")
+    H = sp.csc_matrix(sp.kron(Q, sp.identity(3), format="csr") + ray_term)
+    H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
+    return H, ray_term @ C.ravel()
+
+
+def test_soft_system_is_bit_identical(rng) -> None:
+    n = 40
+    A = sp.random(n, n, density=0.15, format="csr", random_state=rng)
+    Q = sp.csr_matrix(A @ A.T + sp.diags(rng.random(n)))
+    Q.data[::7] = 0.0  # a few exact zeros, as cancellation can leave
+    Q = sp.csr_matrix(Q + sp.csr_matrix((n, n)))
+    r = rng.normal(size=(n, 3))
+    r /= np.linalg.norm(r, axis=1, keepdims=True)
+    r[::5] = 0.0  # unobserved: NaN rays become zeros
+    r[3, 1] = 0.0
+    C = rng.normal(size=(n, 3))
+    wgt = 1e4 * rng.random(n)
+    wgt[::5] = 0.0
+    for reg in (1e-12, 0.0):
+        H, rhs = _soft_system(Q, r, C, wgt, reg)
+        H_ref, rhs_ref = _sparse_products(Q, r, C, wgt, reg)
+        H.sum_duplicates()
+        H_ref.sum_duplicates()
+        assert np.array_equal(H.indptr, H_ref.indptr)
+        assert np.array_equal(H.indices, H_ref.indices)
+        assert np.array_equal(H.data, H_ref.data)
+        assert np.array_equal(rhs, rhs_ref)
+        assert np.array_equal(np.signbit(rhs), np.signbit(rhs_ref))
+
+
+def test_stage_meter_times_every_stage_and_changes_nothing(assets_dir) -> None:
+    walk = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    capture, _ = simulate(walk, SimulationSettings(duration=0.6, rate=10, noise=1.0))
+    options = Options(max_iterations=8, soft_iterations=4)
+    plain = reconstruct(capture, options)
+    originals = (pipeline.solve_events, pipeline.clocked, alternation.sequence)
+    with StageMeter() as meter:
+        metered = reconstruct(capture, options)
+    assert (pipeline.solve_events, pipeline.clocked, alternation.sequence) == originals
+    assert np.array_equal(metered.X, plain.X)
+    assert np.array_equal(metered.order, plain.order)
+    assert tuple(meter.seconds) == STAGES
+    assert all(v >= 0 for v in meter.seconds.values())
+    assert meter.seconds["alternation"] > 0 and meter.seconds["sequencing"] > 0
+    assert sum(meter.seconds.values()) <= metered.seconds + 0.05
