@@ -32,6 +32,7 @@ def test_noise_quick(shared_dir, tmp_path) -> None:
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_runtime_quick(shared_dir, tmp_path) -> None:
     out = tmp_path / "runtime"
     doc = benchmark.main("runtime", out=out, data=shared_dir / "data" / "mocap", quick=True,

@@ -66,6 +66,7 @@ def test_solve_then_evaluate(capture_file, tmp_path):
     assert float(scores["error_mm"]) < 0.5 * float(scores["pseudo_triangulation_mm"])
 
 
+@pytest.mark.slow
 def test_two_people_through_the_command_line(assets_dir, tmp_path):
     """simulate --mix people -> solve (a capture with x (N, 2, P, 2)) -> evaluate."""
     cap, res = tmp_path / "people.npz", tmp_path / "result.npz"

@@ -338,6 +338,7 @@ def test_end_to_end_walking_accuracy(assets_dir):
     assert r.A.nnz <= 12 * cap.num_images  # sparse graph
 
 
+@pytest.mark.slow
 def test_soft_rays_average_the_noise(assets_dir):
     """At 5 px the hard-ray solve carries all the noise; the soft-ray sweeps must relax it well
     below both that solve and the hard-ray oracle. ``soft_iterations=0`` keeps the hard solve."""
@@ -354,6 +355,7 @@ def test_soft_rays_average_the_noise(assets_dir):
     assert soft <= 0.6 * hard and soft <= 0.6 * oracle, (soft, hard, oracle)
 
 
+@pytest.mark.slow
 def test_soft_phase_stops_at_the_noise_level(assets_dir):
     """At 1 px the soft sweeps stop once the points' median residual is the noise's (the
     discrepancy principle); running all of them (explicit lambda2) lets W fit the noise. The

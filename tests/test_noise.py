@@ -52,6 +52,7 @@ def test_auto_on_noisy_detections_solves_with_the_estimate(assets_dir):
     assert r.clock is None  # stream clocks auto: off with noisy rays
 
 
+@pytest.mark.slow
 def test_auto_on_exact_detections_is_the_hard_ray_solve(assets_dir):
     cap = walking(assets_dir)
     auto = reconstruct(cap)

@@ -47,6 +47,7 @@ def test_lab_rig(shared_dir, tmp_path) -> None:
 
 
 @pytest.mark.shared
+@pytest.mark.slow
 def test_crowd_photos(shared_dir, tmp_path) -> None:
     """SfM of the 10 Sacre-Coeur photos, keypoints of a moving figure projected with the
     reference model, then the reconstruct stage with overlays on the real images."""
