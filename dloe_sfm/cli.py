@@ -37,6 +37,7 @@ STAGES = {
         "dloe_sfm.stages.view", "play a reconstruct output in open3d's window (or write a GIF)"
     ),
     "sync": ("dloe_sfm.stages.sync", "print each stream's time offset and rate of an output"),
+    "batch": ("dloe_sfm.stages.batch", "run many captures / COLMAP workspaces as Dask tasks"),
 }
 
 

@@ -12,7 +12,13 @@ import scipy.sparse as sp
 from scenes import toy_capture
 
 from dloe_sfm import reconstruct
-from dloe_sfm.core.assess import BLOCK, assess, depth_variances, inverse_diagonal
+from dloe_sfm.core.assess import (
+    BLOCK,
+    assess,
+    depth_variances,
+    inverse_diagonals,
+    neighbour_deviation,
+)
 from dloe_sfm.core.options import Options, RobustLoss
 from dloe_sfm.core.steps import smoothness_matrix
 from dloe_sfm.io import CHECK_KEYS, load_result, save_result
@@ -86,12 +92,63 @@ def test_checks_round_trip_through_the_result_file(tmp_path):
     assert loaded.supported.dtype == bool
 
 
+def random_band(m: int, width: int, rng: np.random.Generator) -> sp.csr_matrix:
+    """A random SPD matrix of bandwidth ``width``: ``B B^T`` plus a ridge, B lower-banded."""
+    B = sp.diags([rng.uniform(0.5, 2.0, m)] + [rng.standard_normal(m - k)
+                                                for k in range(1, width + 1)],
+                 list(range(0, -width - 1, -1)), shape=(m, m))
+    return sp.csr_matrix(B @ B.T + 1e-3 * sp.identity(m))
+
+
+def dense_diagonal(H: sp.spmatrix) -> np.ndarray:
+    return np.diag(np.linalg.inv(H.toarray()))
+
+
 def test_inverse_diagonal_is_exact(rng):
-    # a random sparse SPD matrix larger than one block, in scrambled order
-    m = BLOCK + 57
+    # a random sparse SPD matrix spanning many blocks, in scrambled order
+    m = 40 * BLOCK + 57
     A = sp.random(m, m, density=3.0 / m, random_state=1) + sp.diags(np.ones(m - 1), 1)
     H = sp.csr_matrix(A @ A.T + 0.1 * sp.identity(m))
     perm = rng.permutation(m)
     H = H[perm][:, perm]
-    expected = np.diag(np.linalg.inv(H.toarray()))
-    assert np.allclose(inverse_diagonal(H), expected, rtol=1e-10)
+    assert np.allclose(inverse_diagonals([H])[0], dense_diagonal(H), rtol=1e-10)
+
+
+@pytest.mark.parametrize("width", [0, 1, 2, BLOCK - 1, BLOCK, BLOCK + 1, 3 * BLOCK])
+def test_selected_inversion_matches_the_dense_inverse_on_a_band(width, rng):
+    m = 300
+    H = random_band(m, width, rng)
+    assert np.allclose(inverse_diagonals([H])[0], dense_diagonal(H), rtol=1e-10, atol=0)
+    # the same band scrambled: reverse Cuthill-McKee recovers it
+    perm = rng.permutation(m)
+    scrambled = H[perm][:, perm]
+    assert np.allclose(inverse_diagonals([scrambled])[0], dense_diagonal(scrambled), rtol=1e-10,
+                       atol=0)
+
+
+def test_lockstep_matrices_of_any_size_and_width_singular_ones_inf(rng, monkeypatch):
+    monkeypatch.setattr("dloe_sfm.core.assess.CHUNK", 500)  # several chunks of blocks
+    sizes = [(1, 0), (5, 2), (BLOCK, 1), (97, 3 * BLOCK), (400, 4), (401, BLOCK + 1)]
+    matrices = [random_band(m, w, rng) for m, w in sizes]
+    matrices.insert(2, sp.csr_matrix(np.ones((4, 4))))  # rank 1
+    diags = inverse_diagonals(matrices)
+    assert np.isinf(diags[2]).all()
+    for H, diag in zip(matrices[:2] + matrices[3:], diags[:2] + diags[3:], strict=True):
+        assert np.allclose(diag, dense_diagonal(H), rtol=1e-10, atol=0)
+
+
+def test_neighbour_deviation_of_some_rows_equals_theirs_among_all(rng):
+    # the flagging loop re-predicts only the images that use a newly flagged one
+    n = 60
+    W = sp.random(n, n, density=0.1, random_state=2, format="csr")
+    W.setdiag(0)
+    W.eliminate_zeros()
+    X = rng.standard_normal((n, 5, 3))
+    observed = rng.random((n, 5)) > 0.3
+    excluded = rng.random(n) > 0.8
+    excluded[W[0].indices] = True  # image 0 has no neighbour left
+    rows = np.append(rng.choice(np.arange(1, n), 17, replace=False), 0)
+    every = neighbour_deviation(X, W, observed, excluded, np.arange(n))
+    assert np.isnan(every).any() and np.isfinite(every).any()
+    assert np.array_equal(neighbour_deviation(X, W, observed, excluded, rows), every[rows],
+                          equal_nan=True)

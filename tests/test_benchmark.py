@@ -36,14 +36,23 @@ def test_noise_quick(shared_dir, tmp_path) -> None:
 def test_runtime_quick(shared_dir, tmp_path) -> None:
     out = tmp_path / "runtime"
     doc = benchmark.main("runtime", out=out, data=shared_dir / "data" / "mocap", quick=True,
-                         sizes=[40, 80])
+                         sizes=[40, 80], streams=4)
     runs = sorted(doc["runs"], key=lambda r: r["num_images"])
+    assert doc["num_streams"] == 4
+    assert all(r["stage_seconds"]["export"] > 0 and r["stage_seconds"]["assess"] > 0
+               for r in runs)
     assert [r["target"] for r in runs] == [40, 80]
     assert all(abs(r["num_images"] - r["target"]) <= 4 for r in runs)  # clip length rounding
     assert all(r["peak_rss_mb"] >= r["rss_before_mb"] > 0 for r in runs)
     assert np.isfinite(doc["summary"]["fits"]["seconds"]["exponent"])
     assert "Fitted growth exponents" in (out / "table.md").read_text()
     assert (out / "runtime.png").is_file()
+
+
+def test_runtime_clip_too_short(tmp_path) -> None:
+    # the bundled basketball_signal_1 clip is 3.5 s: 10^5 images at 8 streams of 30 Hz need 417 s
+    with pytest.raises(benchmark.InputError, match=r"need 416\.7 s .* \(--streams 955 or more\)"):
+        benchmark.main("runtime", out=tmp_path, sizes=[100000])
 
 
 def test_unknown_suite(tmp_path) -> None:

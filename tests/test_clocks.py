@@ -3,7 +3,15 @@
 import numpy as np
 import pytest
 
-from dloe_sfm.core.clocks import fit_clocks, ray_equations, spline_residuals, time_chain
+from dloe_sfm.core.clocks import (
+    _cubic_bspline,
+    _rays,
+    _SplineFit,
+    fit_clocks,
+    ray_equations,
+    spline_residuals,
+    time_chain,
+)
 from dloe_sfm.core.options import Clocks, Options
 from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
@@ -32,6 +40,45 @@ def test_time_chain_reproduces_constant_velocity():
     assert np.allclose((W @ t) * D, t * D)  # every inner row interpolates its own time exactly
     assert D[[1, 4]].tolist() == [0.0, 0.0] and np.allclose(W.sum(axis=1).A.ravel(), 1.0)
     assert W[1, 3] == 1.0 and W[4, 2] == 1.0  # the ends' rows: their one neighbour
+
+
+def test_spline_residuals_match_a_dense_solve(rng):
+    """The banded solve (residuals, Kaufman Jacobian, and the Gram form the fit uses) against
+    the dense design A and ``(A^T A + ridge I)^-1 A^T rhs`` on a tiny capture: 40 images, 3
+    points, a knot every 0.5, the first knot with no data (held by the ridge)."""
+    n, p, spacing, ridge = 40, 3, 0.5, 1e-9
+    t = np.sort(rng.uniform(0.0, 2.0, n))
+    rays = rng.normal(size=(n, p, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    visible = rng.random((n, p)) < 0.8
+    E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), rng.uniform(0.5, 2.0, (n, p)))
+    rhs = rhs + 0.1 * rng.normal(size=rhs.shape)
+    dt = np.stack([np.arange(n) % 2, (np.arange(n) % 2) * np.arange(n)], axis=1).astype(float)
+    start = -0.6
+    u = (t - start) / spacing
+    j = np.floor(u).astype(int)
+    nb = j.max() + 4
+    b, db = _cubic_bspline(u - j)
+    img, pt = np.nonzero(visible)
+    A = np.zeros((2 * img.size, p * nb * 3))
+    dA = np.zeros_like(A)  # d A / d t of every row's image
+    for o, (i, q) in enumerate(zip(img, pt, strict=True)):
+        for k in range(4):
+            cols = slice((q * nb + j[i] + k) * 3, (q * nb + j[i] + k + 1) * 3)
+            A[2 * o : 2 * o + 2, cols] = b[i, k] * E[i, q]
+            dA[2 * o : 2 * o + 2, cols] = db[i, k] / spacing * E[i, q]
+    G = A.T @ A + ridge * np.eye(A.shape[1])
+    y = rhs[img, pt].ravel()
+    beta = np.linalg.solve(G, A.T @ y)
+    res = A @ beta - y
+    D = (dA @ beta)[:, None] * np.repeat(dt[img], 2, axis=0)
+    J = D - A @ np.linalg.solve(G, A.T @ D)
+    r, Jb = spline_residuals(t, E, rhs, visible, spacing, start, dt, ridge=ridge)
+    assert np.abs(r - res).max() <= 1e-10 * np.abs(res).max()
+    assert np.abs(Jb - J).max() <= 1e-10 * np.abs(J).max()
+    jtj, jtr = _SplineFit(t, _rays(E, rhs, visible), spacing, start, ridge).gram(dt)
+    assert np.abs(jtj - J.T @ J).max() <= 1e-10 * np.abs(J.T @ J).max()
+    assert np.abs(jtr - J.T @ res).max() <= 1e-10 * np.abs(J.T @ res).max()
 
 
 def test_spline_gradient_matches_finite_differences(sparse_walk):

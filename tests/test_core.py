@@ -6,7 +6,9 @@ import pytest
 import scipy.sparse as sp
 from scipy.optimize import minimize
 
+from dloe_sfm.core import steps
 from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.dtw import align, monotone_assignment
 from dloe_sfm.core.init import pseudo_triangulate
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.problem import build_problem
@@ -16,7 +18,6 @@ from dloe_sfm.core.sequencing import (
     euclidean_distance,
     kendall_tau,
     line_embedding,
-    monotone_assignment,
     order_from_embedding,
     orient,
 )
@@ -253,6 +254,42 @@ def test_monotone_assignment_respects_order(rng):
     assert abs(small[np.arange(4), p].sum() - best[0]) < 1e-12
 
 
+def test_align_coarse_to_fine_matches_the_whole_table(rng):
+    # two samplings of one curve at different rates and offsets: the coarse-to-fine alignment
+    # (tables of at most 64 entries) finds the exact DTW path of the whole table
+    def curve(u):
+        return np.stack([np.cos(5 * u), np.sin(3 * u), u], axis=1)
+
+    A = curve(np.sort(rng.uniform(0.05, 0.95, 300)))
+    B = curve(np.linspace(0, 1, 170))
+    d = np.linalg.norm(A[:, None] - B[None], axis=2)
+
+    def cost(i, j):
+        return d[i, j]
+
+    exact = monotone_assignment(d)
+    assert np.array_equal(align(cost, 300, 170, full_table=64), exact)
+    assert np.array_equal(align(cost, 300, 170, full_table=300 * 170), exact)  # whole table
+    # a non-finite cost is taken only where nothing else is
+    d[:, 10] = np.inf
+    assert not (align(cost, 300, 170, full_table=64) == 10).any()
+
+
+def test_dtw_positions_long_streams_in_a_band():
+    s = np.linspace(0, 1, 400)
+
+    def curve(u):
+        return np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
+
+    B = curve(s)
+    A = curve(np.linspace(0.001, 0.999, 700))  # 700 x 399 > dtw.FULL_TABLE: coarse to fine
+    pos = dtw_positions(A, B)
+    arc_b = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(B, axis=0), axis=1))])
+    true = np.interp(np.linspace(0.001, 0.999, 700), s, arc_b)
+    assert (np.diff(pos) >= 0).all()
+    assert np.abs(pos - true).max() < 1e-4 * arc_b[-1]
+
+
 def test_dtw_positions_on_a_shared_curve():
     s = np.linspace(0, 1, 40)
 
@@ -415,6 +452,13 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
         idx = r.order[r.events[r.order] == e]  # this event's images, in estimated order
         assert kendall_tau(np.arange(idx.size), t[idx]) > 0.98  # 2 cameras, 1 s per event
         assert 1000 * np.linalg.norm(r.X[idx] - X_true[idx], axis=2).mean() < 3.0
+    # the events solved in two worker processes: the same numbers
+    calls = []
+    rp = reconstruct(cap, Options(workers=2), progress=lambda *a: calls.append(a))
+    for name in ("X", "order", "D", "embedding", "clock", "cost_history", "depth_sd"):
+        np.testing.assert_array_equal(getattr(rp, name), getattr(r, name), err_msg=name)
+    assert (rp.W != r.W).nnz == 0
+    assert [done == total for done, total, _ in calls].count(True) >= 2  # one per event
 
 
 def test_lone_photos_without_streams(assets_dir):
@@ -427,3 +471,54 @@ def test_lone_photos_without_streams(assets_dir):
     r = reconstruct(lone, Options())
     assert_near_oracle(lone, r.X, X_true, t)
     assert kendall_tau(r.order, t) >= 0.99
+
+
+def dense_x_step(W, D, prob, lambda1, lambda2):
+    """The X-step by a dense solve per point of the same quadratic (and ridge)."""
+    n, p = prob.rays.shape[:2]
+    Q = smoothness_matrix(W, D, lambda1).toarray()
+    Q3, reg = np.kron(Q, np.eye(3)), 1e-10 * Q.diagonal().mean()
+    r0 = np.nan_to_num(prob.rays)
+    X = np.empty((n, p, 3))
+    for j in range(p):
+        if np.isinf(lambda2):
+            obs = prob.visible[:, j]
+            blocks = [r0[i, j][:, None] if obs[i] else np.eye(3) for i in range(n)]
+            B = sp.block_diag(blocks).toarray()
+            c = np.where(obs[:, None], prob.C, 0.0).ravel()
+            H, g = B.T @ Q3 @ B, B.T @ Q3 @ c
+        else:
+            wgt = lambda2 * prob.weights[:, j]
+            rays = zip(wgt, r0[:, j], strict=True)
+            P = sp.block_diag([w * (np.eye(3) - np.outer(r, r)) for w, r in rays])
+            B, c = np.eye(3 * n), np.zeros(3 * n)
+            H, g = Q3 + P.toarray(), -P @ prob.C.ravel()
+        X[:, j] = (c + B @ np.linalg.solve(H + reg * np.eye(len(H)), -g)).reshape(n, 3)
+    return X
+
+
+@pytest.mark.parametrize("lambda2", [np.inf, 0.5])
+@pytest.mark.parametrize("graph", ["chain", "long edges", "indefinite"])
+def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, graph):
+    """A chain-like graph is solved as a band; one with long edges (a wide band), or a system
+    the banded Cholesky finds indefinite, by SuperLU: all give the dense solution, with
+    unobserved points taking 3 unknowns each."""
+    cap, truth = small_capture(rng, n_per_stream=20, p=4)
+    n, p = cap.num_images, cap.num_points
+    cap.x[rng.random((n, p)) < 0.3] = np.nan
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    W, lambda1 = prob.chain, 0.05
+    if graph == "long edges":
+        cols = rng.integers(0, n, (n, 6)).ravel()
+        W = sp.csr_matrix((np.full(6 * n, 1 / 6), (np.repeat(np.arange(n), 6), cols)), (n, n))
+    if graph == "indefinite":
+        lambda1 = -3.0
+    superlu = steps._superlu
+    sparse_solves = []
+    monkeypatch.setattr(steps, "_superlu", lambda H, b: sparse_solves.append(1) or superlu(H, b))
+    D = rng.uniform(0.5, 1.5, n)
+    X = x_step(W, D, prob, lambda1=lambda1, lambda2=lambda2, X_prev=truth.X)
+    assert len(sparse_solves) == (0 if graph == "chain" else p)
+    ref = dense_x_step(W, D, prob, lambda1, lambda2)
+    tol = 1e-6 if graph == "indefinite" else 1e-8  # SuperLU does not pivot here
+    assert np.abs(X - ref).max() < tol * (1 + np.abs(ref).max())

@@ -69,6 +69,8 @@ VALID = {
     "robust_iterations": _int(0, 10**6),
     "fix_swaps": _flag,
     "segment_events": _flag,
+    "workers": lambda v: v == "auto" or _int(1, 10**6)(v),
+    "window_images": lambda v: v == "auto" or _int(0, 10**6)(v),
 }
 
 
@@ -100,6 +102,9 @@ BAD = [
     ("lambda2", -INF, "None or a number > 0 (inf allowed)"),
     ("noise_px", -5, "auto or a finite number >= 0"),
     ("noise_px", INF, "auto or a finite number >= 0"),
+    ("workers", 0, "auto or an integer in [1, 1000000]"),
+    ("workers", 2.5, "auto or an integer in [1, 1000000]"),
+    ("window_images", -1, "auto or an integer in [0, 1000000]"),
     ("lambda3", NAN, "a finite number >= 0"),
     ("ridge", -1e-9, "a finite number >= 0"),
     ("prior_weight", 5, "a number in [0, 1]"),

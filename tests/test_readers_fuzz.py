@@ -321,6 +321,9 @@ def test_memory_estimate_and_check(capture, monkeypatch) -> None:
     small, large = memory_estimate(100, 25), memory_estimate(10_000, 25)
     assert large > 50 * small  # the (N, N) arrays dominate
     assert memory_estimate(10_000, 25, num_streams=20) > large
+    # with videos the sequencing tables stay at MDS_SAMPLE images: linear in N beyond
+    videos = [memory_estimate(n, 28, num_streams=16, num_videos=16) for n in (10_000, 100_000)]
+    assert videos[0] < large / 5 and videos[1] < 12 * videos[0]
     options = dloe_sfm.Options()
     monkeypatch.setattr("dloe_sfm.resources.available_memory", lambda: 10 << 20)
     with pytest.raises(InputError, match=r"cap.npz: solving \d+ images x 28 points needs about "

@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import importlib.resources
 import logging
+import math
 import sys
 import time
 from pathlib import Path
 
 from ..core.options import Options
 from ..errors import InputError
-from ..synth import SimulationSettings, resolve_motion
+from ..synth import load_mocap, resolve_motion
 from .jobs import kendall_job, run_jobs, runtime_job, sweep_job
 from .report import (
     fit_exponent,
@@ -51,6 +52,7 @@ from .suites import (
     QUICK_MOTIONS,
     RUNTIME_MOTION,
     RUNTIME_SIZES,
+    RUNTIME_STREAMS,
     SUITES,
     SWEEPS,
     ablation_variants,
@@ -70,7 +72,8 @@ DEFAULT_OUT = Path("outputs") / "benchmark"
 
 def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick: bool = False,
          seeds: int | None = None, motions: list[str] | None = None, jobs: int = 1,
-         duration: float | None = None, sizes: list[int] | None = None) -> dict:
+         duration: float | None = None, sizes: list[int] | None = None,
+         streams: int | None = None) -> dict:
     """Run one benchmark suite; returns the document written to ``<out>/results.json``.
 
     Parameters
@@ -84,6 +87,8 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     jobs : worker processes (each single-threaded); the runtime suite always runs one at a time.
     duration : clip length in seconds (default 2.5 s ~ the paper's 300 frames, quick 1 s).
     sizes : runtime suite: target numbers of images.
+    streams : runtime suite: video streams at 30 Hz (default :data:`RUNTIME_STREAMS`); the
+        clip must last sizes / (30 streams) seconds.
     """
     if suite not in SUITES:
         raise InputError(f"unknown suite '{suite}', choose from {', '.join(SUITES)}")
@@ -132,15 +137,24 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
         png = plot_kendall(summary, out / "kendall.png")
     else:
         sizes = sizes or list(RUNTIME_SIZES[quick])
-        settings = SimulationSettings(num_streams=8, rate=30.0)
-        per_second = settings.num_streams * settings.rate
+        streams = streams or RUNTIME_STREAMS
+        if streams < 2:
+            raise InputError(f"--streams must be 2 or more, got {streams}")
+        per_second = streams * 30.0
+        seq = load_mocap(paths[0])
+        clip = seq.positions.shape[0] / seq.fps
+        if max(sizes) / per_second > clip:
+            raise InputError(f"{Path(paths[0]).name} is {clip:.1f} s long: {max(sizes)} images "
+                             f"need {max(sizes) / per_second:.1f} s at {streams} streams of "
+                             f"30 Hz (--streams {math.ceil(max(sizes) / (30.0 * clip))} or "
+                             "more)")
         specs = [{"motion": paths[0], "setting": int(n),
-                  "settings": simulation_settings(0, n / per_second, num_streams=8,
+                  "settings": simulation_settings(0, n / per_second, num_streams=streams,
                                                   rate=30.0)} for n in sizes]
         records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
         summary = summarise_runtime(records)
         table = runtime_table(records, summary)
-        doc.update(sizes=list(sizes), num_streams=8, rate=30.0)
+        doc.update(sizes=list(sizes), num_streams=streams, rate=30.0)
         png = plot_runtime(records, summary, out / "runtime.png")
     doc.update(seconds=time.perf_counter() - t0, summary=summary, runs=records, table=table,
                plot=str(png))

@@ -9,20 +9,20 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
-import os
 import resource
+import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from ..baselines import high_pass_filter, pseudo_triangulation, sedl, trajectory_basis
-from ..core import alternation, pipeline
+from ..core import alternation, pipeline, solver
 from ..core.capture import Capture
 from ..core.options import Distance, Embedding, Options
+from ..core.parallel import single_threaded_children
 from ..core.problem import initialise
 from ..core.sequencing import (
     affine_time,
@@ -131,6 +131,7 @@ _METERED = (
     (pipeline, "robust_rounds", "robust rounds"),
     (pipeline, "clocked", "clocks"),
     (alternation, "sequence", "sequencing"),
+    (solver, "assess", "assess"),
 )
 
 
@@ -191,6 +192,14 @@ def runtime_job(spec: dict) -> list[dict]:
     before = _rss_mb()
     with StageMeter() as meter:
         result = reconstruct(capture, Options())
+    from ..export import export_outputs  # open3d is slow to import: only here
+
+    # the outputs of a solve (trajectories, point clouds, report; no plots) into a scratch folder
+    rss, t0 = _rss_mb(), time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        export_outputs(Path(tmp) / "out", capture, result, plots=False)
+    meter.seconds["export"] = time.perf_counter() - t0
+    meter.rise_mb["export"] = _rss_mb() - rss
     t = result.timings
     steps = t["w_step"] + t["d_step"] + t["x_step"]
     return [{"target": spec["setting"], "num_images": capture.num_images,
@@ -203,22 +212,6 @@ def runtime_job(spec: dict) -> list[dict]:
              "error_mm": point_errors(result.X, truth.X, capture.visible)["error_mm"]}]
 
 
-@contextmanager
-def _single_threaded_children() -> Iterator[None]:
-    """Spawned workers inherit one BLAS / OpenMP thread each (set before they import numpy)."""
-    keys = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-    old = {k: os.environ.get(k) for k in keys}
-    os.environ.update({k: "1" for k in keys})
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def run_jobs(job: Callable[[dict], list[dict]], specs: list[dict], jobs: int, desc: str, *,
              fresh: bool = False) -> list[dict]:
     """Run ``job`` on every spec in ``jobs`` spawned single-threaded worker processes.
@@ -226,7 +219,7 @@ def run_jobs(job: Callable[[dict], list[dict]], specs: list[dict], jobs: int, de
     With ``fresh`` every spec gets a new process, so its peak memory is its own.
     """
     records: list[dict] = []
-    with _single_threaded_children(), mp.get_context("spawn").Pool(
+    with single_threaded_children(), mp.get_context("spawn").Pool(
             max(1, jobs), maxtasksperchild=1 if fresh else None) as pool:
         for out in tqdm(pool.imap(job, specs), total=len(specs), desc=desc, unit="run"):
             records += out

@@ -41,8 +41,11 @@ SWEEPS = {
 ABLATION_NOISE = ((2.0, 4.0), (3.0,))
 RUNTIME_SIZES = ((100, 250, 500, 1000, 2000), (60, 120, 240))
 RUNTIME_MOTION = "basketball_signal_1"
-STAGES = ("init", "events", "alternation", "robust rounds", "clocks", "sequencing")
-"""Stages of a solve the runtime suite times (``jobs.StageMeter``)."""
+STAGES = ("init", "events", "alternation", "robust rounds", "clocks", "sequencing", "assess",
+          "export")
+"""Stages of a solve the runtime suite times (``jobs.StageMeter``), then writing its outputs."""
+RUNTIME_STREAMS = 8
+"""Streams (at 30 Hz) of the runtime suite's captures unless ``--streams`` says otherwise."""
 SUITES = [*SWEEPS, "kendall", "ablation", "runtime"]
 
 

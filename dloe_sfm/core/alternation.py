@@ -19,6 +19,7 @@ from .problem import Normalised, initialise, normalise
 from .result import Result
 from .robust import predicted, residuals_px
 from .sequencing import (
+    MDS_SAMPLE,
     affine_time,
     distance_matrix,
     line_embedding,
@@ -55,19 +56,23 @@ def sequence(
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
     With the ``affine`` embedding and video streams, both come from the streams' affine clocks
-    (the prior rescaled to the MDS embedding's length units, which the T term needs). Otherwise
-    the loop uses classical MDS of the distances (fast) and ``final`` computes the order with
-    ``options.embedding``.
+    (the prior rescaled to the MDS embedding's length units, which the T term needs; that scale
+    is measured on at most ``MDS_SAMPLE`` images spread over the capture, so no N x N table is
+    made). Otherwise the loop uses classical MDS of the distances (fast) and ``final`` computes
+    the order with ``options.embedding``.
     """
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
     placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None
-    Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
-    mds = orient(mds_embedding(Z), prob.streams, frames)
     if options.embedding is Embedding.AFFINE:
         t = affine_time(X, prob.streams, frames, placement)
         if t is not None:
-            slope = np.polyfit(t, mds, 1)[0]
+            sample = np.unique(np.linspace(0, t.size - 1, min(t.size, MDS_SAMPLE)).astype(int))
+            Z = distance_matrix(X, prob.streams, frames, options.distance, placement, sample)
+            mds = orient(mds_embedding(Z), prob.streams[sample], frames[sample])
+            slope = np.polyfit(t[sample], mds, 1)[0]
             return t * abs(slope), t
+    Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
+    mds = orient(mds_embedding(Z), prob.streams, frames)
     if not final or options.embedding is Embedding.MDS:
         return mds, mds
     kind = Embedding.SHP if options.embedding is Embedding.AFFINE else options.embedding

@@ -11,11 +11,12 @@ residual. Thresholds are robust z-scores against the capture's own median / MAD 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.linalg import cholesky_banded
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from .capture import Capture
@@ -30,17 +31,17 @@ RATIO_FLAG = 3.0
 WEAK_POINT_RATIO = 10.0
 """An unobserved point whose position sd exceeds this many times the median depth sd of the
 observed points has no support (NaN in the exports)."""
-BLOCK = 256
-"""Columns of the identity solved at once for the diagonal of an inverse."""
+BLOCK = 8
+"""Smallest block (rows) of the selected inversion of a banded factor."""
+CHUNK = 1 << 20
+"""Entries of the (blocks, factors, s, s) arrays formed at once by the selected inversion."""
 STATUS = ("ok", "uncertain", "inconsistent")
 
 
-def inverse_diagonal(H: sp.spmatrix) -> np.ndarray:
-    """Exact diagonal of ``H^-1`` (H sparse symmetric positive definite): reordered into a band
-    (reverse Cuthill-McKee), its banded Cholesky factor (LAPACK), then solves on blocks of
-    ``BLOCK`` identity columns keeping only their diagonal entries: O(m b^2) to factor and
-    O(m^2 b) to solve for bandwidth b, never the dense inverse. Inf when H is numerically
-    singular (nothing determines the unknowns)."""
+def band_factor(H: sp.spmatrix) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(perm, U)``: H (sparse symmetric positive definite) reordered into a band by reverse
+    Cuthill-McKee, ``H[perm][:, perm] = U^T U``, U in LAPACK upper band storage ((b + 1, m) for
+    bandwidth b); O(m b^2). None when H is numerically singular."""
     m = H.shape[0]
     H = sp.csr_matrix(H)
     perm = reverse_cuthill_mckee(H, symmetric_mode=True)
@@ -51,18 +52,74 @@ def inverse_diagonal(H: sp.spmatrix) -> np.ndarray:
     ab = np.zeros((width + 1, m))
     ab[width + rows - cols, cols] = vals  # LAPACK upper band storage
     try:
-        factor = cholesky_banded(ab)
+        return perm, cholesky_banded(ab)
     except np.linalg.LinAlgError:
-        return np.full(m, np.inf)
-    out = np.empty(m)
-    for lo in range(0, m, BLOCK):
-        hi = min(lo + BLOCK, m)
-        E = np.zeros((m, hi - lo))
-        E[np.arange(lo, hi), np.arange(hi - lo)] = 1.0
-        out[lo:hi] = cho_solve_banded((factor, False), E)[np.arange(lo, hi), np.arange(hi - lo)]
-    diag = np.empty(m)
-    diag[perm] = out
-    return diag
+        return None
+
+
+def banded_inverse_diagonals(factors: Sequence[np.ndarray]) -> list[np.ndarray]:
+    """Diagonal of ``(U^T U)^-1`` for each banded Cholesky factor U (LAPACK upper band storage).
+
+    Selected inversion (Takahashi / Erisman-Tinney) on diagonal blocks of ``s = max(b, BLOCK)``
+    rows, b the largest bandwidth: U is then block upper bidiagonal, and the diagonal blocks of
+    ``Z = (U^T U)^-1`` follow ``Z_k = (U_kk^T U_kk)^-1 + V_k Z_(k+1) V_k^T``, ``V_k = U_kk^-1
+    U_k,k+1``, from the last block to the first: O(m s^2) time and O(m s) memory for m rows.
+    The factors run in lockstep, each padded in front to the longest with identity rows (which
+    leave the rest of its inverse unchanged).
+    """
+    width = max(f.shape[0] for f in factors) - 1
+    size = max(width, BLOCK)
+    blocks = -(-max(f.shape[1] for f in factors) // size)
+    total = blocks * size
+    # one block of zeros past the end: the last block's (empty) coupling to the next
+    full = np.zeros((len(factors), width + 1, total + size))
+    for k, f in enumerate(factors):
+        b, m = f.shape[0] - 1, f.shape[1]
+        d, c = np.indices(f.shape)
+        # LAPACK leaves the entries above the first row of U unset
+        full[k, width - b :, total - m : total] = np.where(d + c >= b, f, 0.0)
+        full[k, width, : total - m] = 1.0
+    i, j = np.indices((size, size))
+    # U[r, c] = full[width - (c - r), c] for 0 <= c - r <= width
+    diag_offset, next_offset = j - i, size + j - i
+    in_diag = (diag_offset >= 0) & (diag_offset <= width)
+    in_next = next_offset <= width
+    diag_row = width - np.clip(diag_offset, 0, width)
+    next_row = width - np.clip(next_offset, 0, width)
+    out = np.empty((blocks, len(factors), size))
+    chunk = max(1, CHUNK // (len(factors) * size * size))
+    Z = np.zeros((len(factors), size, size))
+    for hi in range(blocks, 0, -chunk):
+        lo = max(hi - chunk, 0)
+        first = size * np.arange(lo, hi)[:, None, None]
+        U_diag = np.where(in_diag, full[:, diag_row, first + j], 0.0).swapaxes(0, 1)
+        U_next = np.where(in_next, full[:, next_row, first + size + j], 0.0).swapaxes(0, 1)
+        U_inv = np.linalg.inv(U_diag)  # triangular: the solves are back-substitutions
+        D = U_inv @ U_inv.swapaxes(2, 3)
+        V = U_inv @ U_next
+        for k in range(hi - lo - 1, -1, -1):
+            Z = D[k] + V[k] @ Z @ V[k].swapaxes(1, 2)
+            out[lo + k] = Z.diagonal(axis1=1, axis2=2)
+    flat = out.transpose(1, 0, 2).reshape(len(factors), total)
+    return [row[total - f.shape[1] :] for row, f in zip(flat, factors, strict=True)]
+
+
+def inverse_diagonals(matrices: Sequence[sp.spmatrix]) -> list[np.ndarray]:
+    """Exact diagonal of ``H^-1`` for each H (sparse symmetric positive definite): reordered into
+    a band (:func:`band_factor`), then selected inversion of the banded factors
+    (:func:`banded_inverse_diagonals`): O(m b^2) time and O(m b) memory for m unknowns and
+    bandwidth b, never the dense inverse. Inf when H is numerically singular (nothing
+    determines the unknowns)."""
+    factored = [band_factor(H) for H in matrices]
+    solved = [f for f in factored if f is not None]
+    inner = iter(banded_inverse_diagonals([f[1] for f in solved]) if solved else [])
+    out = []
+    for H, f in zip(matrices, factored, strict=True):
+        diag = np.full(H.shape[0], np.inf)
+        if f is not None:
+            diag[f[0]] = next(inner)
+        out.append(diag)
+    return out
 
 
 def depth_variances(Q: sp.csr_matrix, rays: np.ndarray, observed: np.ndarray) -> np.ndarray:
@@ -77,7 +134,7 @@ def depth_variances(Q: sp.csr_matrix, rays: np.ndarray, observed: np.ndarray) ->
     Q3 = sp.kron(Q, sp.identity(3), format="csr")
     reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
     r0 = np.nan_to_num(rays)
-    out = np.empty((n, p))
+    systems = []
     for j in range(p):
         obs = observed[:, j]
         seen, miss = np.flatnonzero(obs), np.flatnonzero(~obs)
@@ -90,8 +147,10 @@ def depth_variances(Q: sp.csr_matrix, rays: np.ndarray, observed: np.ndarray) ->
                                (col_of[miss][:, None] + np.arange(3)).ravel()])
         vals = np.concatenate([r0[seen, j].ravel(), np.ones(3 * miss.size)])
         B = sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, seen.size + 3 * miss.size))
-        H = B.T @ Q3 @ B + reg * sp.identity(B.shape[1])
-        diag = inverse_diagonal(H)
+        systems.append(B.T @ Q3 @ B + reg * sp.identity(B.shape[1]))
+    out = np.empty((n, p))
+    for j, diag in enumerate(inverse_diagonals(systems)):
+        seen, miss = np.flatnonzero(observed[:, j]), np.flatnonzero(~observed[:, j])
         out[seen, j] = diag[: seen.size]
         out[miss, j] = diag[seen.size :].reshape(-1, 3).sum(axis=1)
     return out
@@ -120,16 +179,19 @@ def outlying(values: np.ndarray, stats: tuple[float, float], ratio_to: np.ndarra
 
 
 def neighbour_deviation(X: np.ndarray, W: sp.csr_matrix, observed: np.ndarray,
-                        excluded: np.ndarray) -> np.ndarray:
-    """(N,) RMS distance of each image's observed points (all when none) from the prediction of
-    its graph row with the ``excluded`` images' columns dropped (row renormalised); NaN for an
-    image with no neighbour left."""
-    Wk = sp.csr_matrix(W @ sp.diags((~excluded).astype(np.float64)))
+                        excluded: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """RMS distance of each of the images ``rows``' observed points (all when none) from the
+    prediction of its graph row with the ``excluded`` images' columns dropped (row
+    renormalised); NaN for an image with no neighbour left. Each row's value depends on its
+    own row of W only."""
+    Wk = sp.csr_matrix(W[rows] @ sp.diags((~excluded).astype(np.float64)))
     sums = np.asarray(Wk.sum(axis=1)).ravel()
     with np.errstate(divide="ignore"):
         Wk = sp.csr_matrix(sp.diags(np.where(sums > 0, 1.0 / sums, 0.0)) @ Wk)
-    d2 = ((X - predicted(Wk, X)) ** 2).sum(axis=2)
-    pick = np.where(observed.any(axis=1)[:, None], observed, True)
+    shape = (len(rows), *X.shape[1:])
+    d2 = ((X[rows] - np.asarray(Wk @ X.reshape(X.shape[0], -1)).reshape(shape)) ** 2).sum(axis=2)
+    seen = observed[rows]
+    pick = np.where(seen.any(axis=1)[:, None], seen, True)
     dev = np.sqrt((d2 * pick).sum(axis=1) / pick.sum(axis=1))
     dev[sums <= 0] = np.nan
     return dev
@@ -173,17 +235,21 @@ def assess(capture: Capture, result: Result, *, lambda1: float) -> Result:
     bad_residual = outlying(residual, robust_stats(residual, pred_scale), residual)
 
     step = typical_step(X, result.W)
-    deviation = neighbour_deviation(X, result.W, observed, np.zeros(n, dtype=bool)) / step
+    W = sp.csr_matrix(result.W)
+    by_column = sp.csc_matrix(W)
+    bad_neighbour = np.zeros(n, dtype=bool)
+    deviation = neighbour_deviation(X, W, observed, bad_neighbour, np.arange(n)) / step
     # spread at least one step: the clip's ends extrapolate by about one
     stats = robust_stats(deviation, 1.0)
-    bad_neighbour = np.zeros(n, dtype=bool)
     while True:
-        # flag the worst image, then re-predict its neighbours without it
+        # flag the worst image, then re-predict the images it predicts without it
         fresh = outlying(deviation, stats, deviation) & ~bad_neighbour
         if not fresh.any():
             break
-        bad_neighbour[np.flatnonzero(fresh)[np.argmax(deviation[fresh])]] = True
-        deviation = neighbour_deviation(X, result.W, observed, bad_neighbour) / step
+        worst = np.flatnonzero(fresh)[np.argmax(deviation[fresh])]
+        bad_neighbour[worst] = True
+        rows = by_column.indices[by_column.indptr[worst] : by_column.indptr[worst + 1]]
+        deviation[rows] = neighbour_deviation(X, W, observed, bad_neighbour, rows) / step
 
     Q = smoothness_matrix(result.W, result.D, lambda1)
     Xf = X.reshape(n, -1)

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import InputError
+from .sequencing import MDS_SAMPLE
 
 if TYPE_CHECKING:
     from .options import Options
@@ -257,9 +258,11 @@ class Capture:
 
     def memory_estimate(self, options: Options) -> int:
         """Bytes the solve of this capture needs at its peak, roughly (:func:`memory_estimate`)."""
+        counts = np.unique(self.stream_ids, return_counts=True)[1]
         return memory_estimate(
             self.num_images, self.num_points, num_people=self.num_people,
-            num_streams=np.unique(self.stream_ids).size, num_candidates=options.num_candidates,
+            num_streams=counts.size, num_videos=int((counts >= 2).sum()),
+            num_candidates=options.num_candidates,
         )
 
     def _name(self, i: int) -> str:
@@ -333,20 +336,23 @@ def project(X: np.ndarray, K: np.ndarray, R: np.ndarray, C: np.ndarray) -> np.nd
 
 def memory_estimate(
     num_images: int, num_points: int, *, num_people: int = 1, num_streams: int = 1,
-    num_candidates: int = 8,
+    num_videos: int = 0, num_candidates: int = 8,
 ) -> int:
     """Bytes a solve needs at its peak beyond what is already loaded, roughly, on the high side.
 
-    The dominant arrays: the dense (N, N) ones of sequencing (arc distances, pair scores of the
-    initialisation, one image-to-image table per stream, the eigenproblem of an event), the
-    pair scores of the initialisation in blocks of 64 images (64, N, M P, 3), the W-step's
-    candidate shapes (N, k, 3 M P) and the per-observation arrays (N, M P).
+    The dominant arrays: the dense (N', N') ones of sequencing (N' = N images, or with two or
+    more videos, streams of 2+ images, at most ``sequencing.MDS_SAMPLE``: arc distances, the
+    eigenproblem of an event), every image's place on every stream (streams x N), the pair
+    scores of the initialisation (blocks of 64 images against all, (64, N, M P, 3); with videos
+    3 partners per other video, a stream at a time), the W-step's candidate shapes
+    (N, k, 3 M P) and the per-observation arrays (N, M P).
     """
     n = int(num_images)
     k = max(min(int(num_candidates), n - 1), 1)  # the solver clamps k to N - 1
     obs = n * int(num_people) * int(num_points)
-    dense = (int(num_streams) + 8) * n * n
-    pairs = min(n, 64) * 17 * obs
+    table = min(n, MDS_SAMPLE) if num_videos >= 2 else n
+    dense = 8 * table * table + 2 * int(num_streams) * n
+    pairs = (3 if num_videos >= 2 else min(n, 64)) * 17 * obs
     candidates = 6 * k * 3 * obs
     per_observation = 80 * obs
     return 8 * (dense + pairs + candidates + per_observation) + (64 << 20)

@@ -13,11 +13,19 @@ Jacobian, after a coordinate grid over +-1/2 frame period per stream (the residu
 minima a sampling interval apart, and the fit alone can stop in one). The residual is summed
 over knot spacings of 2-5 sampling intervals of the merged streams: no single spacing suits
 every motion. The measurements behind these choices: docs/method.md, "Stream clocks".
+
+Cost: a spline fit is one banded Cholesky factorisation of the points' normal equations, linear
+in the observations (:class:`_SplineFit`); Levenberg-Marquardt sees the Kaufman Jacobian through
+its Gram matrix only (:func:`_condensed`), which takes the same steps without forming it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import numpy as np
+import scipy.linalg as la
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.optimize import least_squares
@@ -57,6 +65,147 @@ def _cubic_bspline(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return b, db
 
 
+class _Rays(NamedTuple):
+    """The ray equations of the visible observations, with what of them the clocks do not
+    change (:func:`_rays`)."""
+
+    img: np.ndarray
+    """(M,) image of every observation (``np.nonzero(visible)`` order)."""
+    pt: np.ndarray
+    """(M,) point of every observation."""
+    e: np.ndarray
+    """(M, 2, 3) the observations' two normals."""
+    rhs: np.ndarray
+    """(M, 2) their right-hand sides."""
+    normal: np.ndarray
+    """(N, P, 6) ``sum_a e_a e_a^T`` per image and point, entries ``_PAIRS`` (0 unobserved)."""
+    pull: np.ndarray
+    """(N, P, 3) ``sum_a rhs_a e_a`` per image and point (0 unobserved)."""
+
+
+_PAIRS = ((0, 0), (1, 0), (1, 1), (2, 0), (2, 1), (2, 2))
+"""The lower triangle's (c, d) of a symmetric 3 x 3 block, in ``_Rays.normal``'s order."""
+_SYMMETRIC = np.array([[0, 1, 3], [1, 2, 4], [3, 4, 5]])
+"""Entry (c, d) of a symmetric 3 x 3 block -> its index in ``_PAIRS``."""
+_SHIFT = np.repeat(np.arange(4), np.arange(4, 0, -1))
+_FIRST = np.concatenate([np.arange(4 - d) for d in range(4)])
+"""The 10 pairs (k, k + shift) of an image's 4 active bases, by shift then k."""
+
+
+def _rays(E: np.ndarray, rhs: np.ndarray, visible: np.ndarray) -> _Rays:
+    """:class:`_Rays` of ``E``, ``rhs`` (:func:`ray_equations`) on the ``visible`` (N, P)
+    observations."""
+    img, pt = np.nonzero(visible)
+    e, r = E[img, pt], rhs[img, pt]
+    c, d = np.array(_PAIRS).T
+    normal = np.zeros((*visible.shape, len(_PAIRS)))
+    normal[img, pt] = np.einsum("oac,oad->ocd", e, e)[:, c, d]
+    pull = np.zeros((*visible.shape, 3))
+    pull[img, pt] = np.einsum("oac,oa->oc", e, r)
+    return _Rays(img, pt, e, r, normal, pull)
+
+
+def _banded_solver(bands: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Solver of the symmetric positive definite system in lower banded storage ``bands``
+    (``bands[i - j, j] = G[i, j]``): banded Cholesky, or SuperLU (which pivots) when rounding
+    leaves G not positive definite (a ridge below the rounding of G's large entries)."""
+    try:
+        factor = la.cholesky_banded(bands, lower=True, check_finite=False)
+    except la.LinAlgError:
+        n = bands.shape[1]
+        lower = sp.diags([bands[k, : n - k] for k in range(bands.shape[0])],
+                         -np.arange(bands.shape[0]), shape=(n, n))
+        return spla.splu((lower + sp.triu(lower.T, 1)).tocsc()).solve
+    return lambda b: la.cho_solve_banded((factor, True), b, check_finite=False)
+
+
+class _SplineFit:
+    """Every point's least-squares cubic B-spline trajectory on its rays at times ``t``
+    (:func:`spline_residuals`): ``beta`` (P, B, 3) the coefficients, ``res`` (2M,) the residuals.
+
+    ``beta`` solves ``G beta = A^T rhs``, ``G = A^T A + ridge I``, A the design (rows: the
+    observations' normals; columns: point, basis, coordinate), which is never formed. G is block
+    diagonal over points and banded (lower bandwidth 11): it is accumulated from the images'
+    B-spline products and the rays' normal products, and factorised once by banded Cholesky.
+    Products with A and A^T go through the (N, B) collocation matrix.
+    """
+
+    def __init__(
+        self, t: np.ndarray, rays: _Rays, spacing: float, start: float, ridge: float = 1e-9
+    ) -> None:
+        n, p = rays.pull.shape[:2]
+        u = (t - start) / spacing
+        j = np.floor(u).astype(np.int64)
+        nb = int(j.max()) + 4
+        b, db = _cubic_bspline(u - j)
+        active = j[:, None] + np.arange(4)
+        self.basis = sp.csr_matrix((b.ravel(), active.ravel(), 4 * np.arange(n + 1)),
+                                   shape=(n, nb))
+        # knots k + shift and k of a point couple by sum_i b_i,k+shift b_i,k normal_i
+        products = sp.csc_matrix(
+            ((b[:, _FIRST] * b[:, _FIRST + _SHIFT]).ravel(),
+             (_SHIFT * nb + j[:, None] + _FIRST).ravel(), 10 * np.arange(n + 1)),
+            shape=(4 * nb, n),
+        )
+        K = (products @ rays.normal.reshape(n, -1)).reshape(4, nb, p, 6)
+        bands = np.zeros((12, p, nb, 3))
+        for shift in range(4):
+            for c in range(3):
+                for d in range(3 if shift else c + 1):  # row (k + shift, c), column (k, d)
+                    bands[3 * shift + c - d, :, : nb - shift, d] = (
+                        K[shift, : nb - shift, :, _SYMMETRIC[c, d]].T
+                    )
+        bands[0] += ridge
+        self.solve = _banded_solver(bands.reshape(12, -1))
+        self.rays, self.spacing, self.ridge = rays, spacing, ridge
+        self.b, self.db, self.active = b, db, active
+        right = (self.basis.T @ rays.pull.reshape(n, -1)).reshape(nb, p, 3).swapaxes(0, 1)
+        self.beta = self.solve(right.ravel()).reshape(p, nb, 3)
+        at = (self.basis @ self.beta.swapaxes(0, 1).reshape(nb, -1)).reshape(n, p, 3)
+        self.res = (np.einsum("oac,oc->oa", rays.e, at[rays.img, rays.pt]) - rays.rhs).ravel()
+
+    def tangent(self, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """With the coefficients held, the residuals' derivative ``D`` in q clock parameters
+        (``dt`` (N, q) the times'): (M, 2) ``along`` (``D = along dt``), (q, P B 3) ``A^T D``
+        and ``G^-1 A^T D``."""
+        rays, (n, nb), p, q = self.rays, self.basis.shape, self.beta.shape[0], dt.shape[1]
+        velocity = np.einsum("ok,okc->oc", self.db[rays.img],
+                             self.beta[rays.pt[:, None], self.active[rays.img]]) / self.spacing
+        along = np.einsum("oac,oc->oa", rays.e, velocity)
+        normal = np.zeros((n, p, 3))
+        normal[rays.img, rays.pt] = np.einsum("oac,oa->oc", rays.e, along)
+        # the collocation matrix times every parameter's derivative, side by side: (N, q B)
+        cols = np.arange(q)[:, None] * nb + self.active[:, None, :]
+        scaled = sp.csr_matrix(
+            ((self.b[:, None, :] * dt[:, :, None]).ravel(), cols.ravel(), 4 * q * np.arange(n + 1)),
+            shape=(n, q * nb),
+        )
+        w = (scaled.T @ normal.reshape(n, -1)).reshape(q, nb, p, 3).swapaxes(1, 2)
+        w = w.reshape(q, -1)
+        return along, w, self.solve(w.T).T
+
+    def jacobian(self, dt: np.ndarray) -> np.ndarray:
+        """(2M, q) Kaufman Jacobian ``D - A G^-1 A^T D`` of the residuals in q clock parameters,
+        ``dt`` (N, q) the times' derivative in them."""
+        rays, (n, nb), p, q = self.rays, self.basis.shape, self.beta.shape[0], dt.shape[1]
+        along, _, y = self.tangent(dt)
+        y = y.reshape(q, p, nb, 3).transpose(2, 0, 1, 3).reshape(nb, -1)
+        at = (self.basis @ y).reshape(n, q, p, 3)[rays.img, :, rays.pt]  # (M, q, 3)
+        d = along[..., None] * dt[rays.img][:, None, :]
+        return (d - rays.e @ at.swapaxes(1, 2)).reshape(-1, q)
+
+    def gram(self, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``J^T J`` (q, q) and ``J^T res`` (q,) of :meth:`jacobian`'s J without forming it:
+        ``D^T D - (A^T D)^T Y - ridge Y^T Y`` and ``D^T res + ridge Y^T beta``, with
+        ``Y = G^-1 A^T D`` (as ``A^T A = G - ridge I`` and ``A^T res = -ridge beta``)."""
+        rays, n = self.rays, dt.shape[0]
+        along, w, y = self.tangent(dt)
+        weight = np.bincount(rays.img, (along * along).sum(axis=1), minlength=n)
+        pull = np.bincount(rays.img, (along * self.res.reshape(-1, 2)).sum(axis=1), minlength=n)
+        jtj = (dt * weight[:, None]).T @ dt - w @ y.T - self.ridge * (y @ y.T)
+        return (jtj + jtj.T) / 2, dt.T @ pull + self.ridge * (y @ self.beta.ravel())
+
+
 def spline_residuals(
     t: np.ndarray,
     E: np.ndarray,
@@ -71,36 +220,22 @@ def spline_residuals(
 
     t (N,) times; knots every ``spacing`` from ``start`` (at most ``t.min()``). With ``dt``
     (N, q), the derivative of the times in q clock parameters, also the Kaufman Jacobian
-    (2M, q) of the residuals (M observations) in those parameters.
+    (2M, q) of the residuals (M observations) in those parameters. The solve: :class:`_SplineFit`.
     """
-    img, pt = np.nonzero(visible)
-    p = visible.shape[1]
-    u = (t - start) / spacing
-    j = np.floor(u).astype(np.int64)
-    nb = int(j.max()) + 4
-    b, db = _cubic_bspline(u - j)
-    e = E[img, pt]  # (M, 2, 3)
-    m = img.size
-    # design: row (o, a), column (point, basis j_o + k, coordinate c) = b_ok e_oac
-    rows = np.broadcast_to(
-        2 * np.arange(m)[:, None, None, None] + np.arange(2)[None, None, :, None], (m, 4, 2, 3)
-    )
-    cols = (pt[:, None, None, None] * nb + j[img][:, None, None, None]
-            + np.arange(4)[None, :, None, None]) * 3 + np.arange(3)[None, None, None, :]
-    vals = b[img][:, :, None, None] * e[:, None, :, :]
-    A = sp.csr_matrix((vals.ravel(), (rows.ravel(), np.broadcast_to(cols, rows.shape).ravel())),
-                      shape=(2 * m, 3 * nb * p))
-    G = (A.T @ A + ridge * sp.identity(A.shape[1])).tocsc()
-    lu = spla.splu(G)
-    beta = lu.solve(A.T @ rhs[img, pt].ravel())
-    res = A @ beta - rhs[img, pt].ravel()
-    if dt is None:
-        return res
-    coef = beta.reshape(p, nb, 3)
-    idx = j[img][:, None] + np.arange(4)
-    velocity = np.einsum("ok,okc->oc", db[img], coef[pt[:, None], idx]) / spacing
-    dr = np.einsum("oac,oc->oa", e, velocity).reshape(-1, 1) * np.repeat(dt[img], 2, axis=0)
-    return res, dr - A @ lu.solve(A.T @ dr)
+    fit = _SplineFit(t, _rays(E, rhs, visible), spacing, start, ridge)
+    return fit.res if dt is None else (fit.res, fit.jacobian(dt))
+
+
+def _condensed(jtj: np.ndarray, jtr: np.ndarray, squares: float) -> np.ndarray:
+    """(q + 1, q) Jacobian J' of the residuals r' = (0, ..., 0, |r|) that has the least-squares
+    problem's ``J^T J`` and ``J^T r`` (from ``squares`` = ``|r|^2``): the same Gauss-Newton
+    model, so Levenberg-Marquardt takes the same steps as on (r, J), at a size independent of
+    the observations. Its last row is ``J^T r / |r|``, the rest a square root of
+    ``J^T (I - r r^T / |r|^2) J``."""
+    norm = max(np.sqrt(squares), np.finfo(float).tiny)
+    last = jtr / norm
+    value, vector = np.linalg.eigh(jtj - np.outer(last, last))
+    return np.vstack([np.sqrt(np.maximum(value, 0.0))[:, None] * vector.T, last])
 
 
 def fit_clocks(
@@ -152,50 +287,64 @@ def fit_clocks(
     period = rate * float(np.median(np.diff(np.unique(f[inv == ref]))))
     start = float(t_init.min()) - 3 * period - max(hs)
 
-    def total(x: np.ndarray, h: float, eq: tuple = (E, rhs, visible)) -> float:
-        r = spline_residuals(times(x), *eq, h, start)
-        return float(r @ r)
-
     x = x0.copy()
     h_mid = hs[len(hs) // 2]
     steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:grid_points]
-    grid_eq = (E[:, seen], rhs[:, seen], visible[:, seen])
+    grid_rays = _rays(E[:, seen], rhs[:, seen], visible[:, seen])
+
+    def grid_residual(x: np.ndarray) -> float:
+        r = _SplineFit(times(x), grid_rays, h_mid, start).res
+        return float(r @ r)
+
+    value = None  # the grid's residual at x (its trial 0 along every coordinate)
     for _ in range(3):  # coordinate sweeps until none moves
         before = x.copy()
         for c in range(free.size):
             trials = [x + d * (np.arange(x.size) == c) for d in steps]
-            x = trials[int(np.argmin([total(y, h_mid, grid_eq) for y in trials]))]
+            values = [value if d == 0 and value is not None else grid_residual(y)
+                      for d, y in zip(steps, trials, strict=True)]
+            best = int(np.argmin(values))
+            x, value = trials[best], values[best]
         if np.array_equal(x, before):
             break
-    norms = [np.sqrt(total(x, h)) for h in hs]
+    rays = _rays(E, rhs, visible)
+    at_grid = [_SplineFit(times(x), rays, h, start) for h in hs]
+    norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
 
-    def refine(x: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        cache: dict = {}
+    def refine(x: np.ndarray, cols: np.ndarray, cache: dict) -> np.ndarray:
+        """``x`` with its ``cols`` fitted by Levenberg-Marquardt to all spacings' residuals
+        (each over its norm at the grid's clocks), seen through :func:`_condensed`; ``cache``
+        maps ``x[cols].tobytes()`` to the fits at ``x`` when known."""
 
-        def evaluate(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        def fits(y: np.ndarray) -> list[_SplineFit]:
             key = y.tobytes()
             if key not in cache:
                 z = x.copy()
                 z[cols] = y
-                parts = [spline_residuals(times(z), E, rhs, visible, h, start, dt[:, cols])
-                         for h in hs]
                 cache.clear()
-                cache[key] = (
-                    np.concatenate([r / n for (r, _), n in zip(parts, norms, strict=True)]),
-                    np.vstack([J / n for (_, J), n in zip(parts, norms, strict=True)]),
-                )
+                cache[key] = [_SplineFit(times(z), rays, h, start) for h in hs]
             return cache[key]
 
-        sol = least_squares(lambda y: evaluate(y)[0], x[cols], jac=lambda y: evaluate(y)[1],
-                            method="lm", xtol=1e-8, ftol=1e-10)
+        def squares(y: np.ndarray) -> float:
+            return sum(float(f.res @ f.res) / n**2 for f, n in zip(fits(y), norms, strict=True))
+
+        def jacobian(y: np.ndarray) -> np.ndarray:
+            grams = [f.gram(dt[:, cols]) for f in fits(y)]
+            jtj = sum(g / n**2 for (g, _), n in zip(grams, norms, strict=True))
+            jtr = sum(g / n**2 for (_, g), n in zip(grams, norms, strict=True))
+            return _condensed(jtj, jtr, squares(y))
+
+        sol = least_squares(lambda y: np.r_[np.zeros(cols.size), np.sqrt(squares(y))], x[cols],
+                            jac=jacobian, method="lm", xtol=1e-8, ftol=1e-10)
         out = x.copy()
         out[cols] = sol.x
         return out
 
-    x = refine(x, np.arange(free.size))
+    offsets = np.arange(free.size)
+    x = refine(x, offsets, {x[offsets].tobytes(): at_grid})
     if not shared_rate:
-        x = refine(x, np.arange(x.size))
+        x = refine(x, np.arange(x.size), {})
     t = times(x)
     moved = np.abs(t - np.polyval(np.polyfit(t0, t, 1), t0))  # up to one map of the time line
     return None if max(np.median(moved[inv == s]) for s in range(k)) > period else t

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
+
+from .dtw import align
 
 
 def closest_approach(
@@ -10,41 +14,59 @@ def closest_approach(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest points of two families of rays ``C1 + s r1`` and ``C2 + t r2`` (broadcasting).
 
-    C1, r1, C2, r2 (..., 3), rays unit. Returns depths s, t (...) and the gap (...) between the
-    closest points; NaN where the rays are parallel.
+    C1, r1, C2, r2 (3, ...): coordinates first (each coordinate a contiguous array), rays unit.
+    Returns depths s, t (...) and the gap (...) between the closest points; NaN where the rays
+    are parallel.
     """
     w0 = C1 - C2
-    b = np.sum(r1 * r2, axis=-1)
-    d = np.sum(r1 * w0, axis=-1)
-    e = np.sum(r2 * w0, axis=-1)
+    b = _dot(r1, r2)
+    d = _dot(r1, w0)
+    e = _dot(r2, w0)
     denom = 1.0 - b * b
     with np.errstate(divide="ignore", invalid="ignore"):
         s = np.where(denom > 1e-12, (b * e - d) / denom, np.nan)
         t = np.where(denom > 1e-12, (e - b * d) / denom, np.nan)
-    gap = np.linalg.norm(w0 + s[..., None] * r1 - t[..., None] * r2, axis=-1)
-    return s, t, gap
+    g = [w0[c] + s * r1[c] - t * r2[c] for c in range(3)]
+    return s, t, np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
 
 
-def _pair_scores(rays, C, streams, lo, hi, cos_max):
-    """Closest-approach depths, validity and mean gaps of images lo:hi against all images."""
-    vis = np.isfinite(rays).all(axis=2)
-    r0 = np.nan_to_num(rays)
-    s, t, gap = closest_approach(C[lo:hi, None, None], r0[lo:hi, None], C[None, :, None], r0[None])
-    cosang = np.abs(np.einsum("apk,bpk->abp", r0[lo:hi], r0))
-    ok = (
-        vis[lo:hi, None]
-        & vis[None]
-        & (cosang < cos_max)
-        & (s > 0)
-        & (t > 0)
-        & (streams[lo:hi, None, None] != streams[None, :, None])
-    )
-    count = ok.sum(axis=2)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        score = np.where(ok, gap, 0.0).sum(axis=2) / count
-    score[count == 0] = np.inf
-    score[count == 1] *= 1e6  # one shared point says little about simultaneity
-    return s, ok, score
+def _dot(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Dot products of (3, ...) coordinate-first vectors."""
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+class _Pairs:
+    """Closest-approach scores of image pairs (rays (N, P, 3) unit, NaN = unobserved)."""
+
+    def __init__(self, rays: np.ndarray, C: np.ndarray, streams: np.ndarray, cos_max: float):
+        self.vis = np.isfinite(rays).all(axis=2)
+        self.r = np.ascontiguousarray(np.moveaxis(np.nan_to_num(rays), 2, 0))  # (3, N, P)
+        self.C = np.ascontiguousarray(C.T)[:, :, None]  # (3, N, 1)
+        self.streams, self.cos_max = streams, cos_max
+
+    def depths(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Depths on a's rays, validity (.., P) and mean gaps (..) of images a against b
+        (index arrays, broadcast)."""
+        ra, rb = self.r[:, a], self.r[:, b]
+        s, t, gap = closest_approach(self.C[:, a], ra, self.C[:, b], rb)
+        cosang = np.abs(_dot(ra, rb))
+        ok = (
+            self.vis[a]
+            & self.vis[b]
+            & (cosang < self.cos_max)
+            & (s > 0)
+            & (t > 0)
+            & (self.streams[a] != self.streams[b])[..., None]
+        )
+        count = ok.sum(axis=-1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            score = np.where(ok, gap, 0.0).sum(axis=-1) / count
+        score[count == 0] = np.inf
+        score[count == 1] *= 1e6  # one shared point says little about simultaneity
+        return s, ok, score
+
+    def score(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return self.depths(a, b)[2]
 
 
 def pseudo_triangulate(
@@ -62,10 +84,11 @@ def pseudo_triangulate(
     rays of the points both observe, counting only rays that meet in front of both cameras at an
     angle of at least ``min_angle`` degrees from (anti)parallel; the partner is the image with the
     smallest mean gap. Two views cannot tell times apart when the motion runs along their epipolar
-    lines, so with ``frames`` the partners in another stream are restricted to an order-preserving
-    alignment of the two streams (DTW on the gaps, +-1 image). Each observed point takes the depth
-    of the closest point on its ray to the partner's ray; a point the partner cannot serve takes
-    the next-best partner that can.
+    lines, so with ``frames`` the partners in another stream of two or more images are only the
+    images within one of an order-preserving alignment of the two streams (DTW on the gaps,
+    ``core.dtw.align``: linear in the streams' lengths); lone photos are scored against every
+    image. Each observed point takes the depth of the closest point on its ray to the partner's
+    ray; a point the partner cannot serve takes the next-best partner that can.
 
     Parameters
     ----------
@@ -73,6 +96,7 @@ def pseudo_triangulate(
     C : (N, 3) float camera centres
     streams : (N,) int stream ids (pairs within one stream are never used)
     frames : (N,) int frame order inside streams, optional
+    chunk : images scored against all others at a time (lone photos, or without ``frames``)
 
     Returns
     -------
@@ -80,51 +104,61 @@ def pseudo_triangulate(
     partner : (N,) int, the most convergent partner of each image (-1 = none)
     """
     n, p = rays.shape[:2]
-    cos_max = np.cos(np.deg2rad(min_angle))
-    score = np.empty((n, n))
-    for lo in range(0, n, chunk):
-        hi = min(n, lo + chunk)
-        score[lo:hi] = _pair_scores(rays, C, streams, lo, hi, cos_max)[2]
-    if frames is not None:
-        score = _align_streams(score, streams, frames)
+    pairs = _Pairs(rays, C, streams, np.cos(np.deg2rad(min_angle)))
     depths = np.full((n, p), np.nan)
     partner = np.full(n, -1)
-    for lo in range(0, n, chunk):
-        hi = min(n, lo + chunk)
-        s, ok, _ = _pair_scores(rays, C, streams, lo, hi, cos_max)
-        sc = score[lo:hi]
-        rank = np.argsort(sc, axis=1, kind="stable")
-        bi = np.arange(hi - lo)[:, None]
-        best = rank[:, 0]
-        partner[lo:hi] = np.where(np.isfinite(sc[bi[:, 0], best]), best, -1)
+    for rows, cols in _candidates(pairs, streams, frames, chunk):
+        s, ok, score = pairs.depths(rows, cols)
+        # group by image, best score first (ties: the lower image index, as a stable sort)
+        order = np.lexsort((cols, score, rows))
+        rows, cols, s, ok, score = rows[order], cols[order], s[order], ok[order], score[order]
+        first = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+        img = rows[first]
+        partner[img] = np.where(np.isfinite(score[first]), cols[first], -1)
         # per point: the best-ranked partner whose ray pair is valid for that point
-        ok_ranked = np.take_along_axis(ok, rank[:, :, None], axis=1)  # (b, N, P)
-        first = np.argmax(ok_ranked, axis=1)  # (b, P) position in the ranking
-        chosen = np.take_along_axis(rank, first, axis=1)  # (b, P) partner image per point
-        usable = ok_ranked.any(axis=1) & np.isfinite(sc[bi, chosen])
-        depths[lo:hi] = np.where(usable, s[bi, chosen, np.arange(p)[None, :]], np.nan)
+        at = np.where(ok, np.arange(rows.size)[:, None], rows.size)
+        chosen = np.minimum.reduceat(at, first, axis=0)  # (images, P)
+        found = chosen < rows.size
+        pick = np.minimum(chosen, rows.size - 1)
+        usable = found & np.isfinite(score[pick])
+        depths[img] = np.where(usable, np.take_along_axis(s, pick, axis=0), np.nan)
     return depths, partner
 
 
-def _align_streams(score: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
-    """Keep, between two streams of 2+ images, only partners near an order-preserving alignment."""
-    from .sequencing import monotone_assignment, stream_members
+def _candidates(
+    pairs: _Pairs, streams: np.ndarray, frames: np.ndarray | None, chunk: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(rows, cols) of the image pairs to score, every image's pairs in one batch: the images
+    within one of the alignment in every other stream of 2+ images (with ``frames``), and every
+    image of another stream for the rest (lone photos, or all images without ``frames``)."""
+    from .sequencing import stream_members
 
-    out = score.copy()
-    members = [m for m in stream_members(streams, frames) if m.size >= 2]
+    n = streams.size
+    members = [] if frames is None else [m for m in stream_members(streams, frames)
+                                         if m.size >= 2]
+    aligned = np.zeros(n, dtype=bool)
+    for m in members:
+        aligned[m] = True
+    rest = np.flatnonzero(~aligned)
+    everyone = np.arange(n)
+    for lo in range(0, rest.size, chunk):
+        rows = rest[lo:lo + chunk]
+        r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
+        yield rows[r], everyone[c]
     for a in members:
+        rows, cols = [], []
         for b in members:
-            if a is b:
+            if b is a:
                 continue
-            block = score[np.ix_(a, b)]
-            finite = np.isfinite(block)
-            if not finite.any():
-                continue
-            big = 10.0 * np.max(block[finite]) + 1.0
-            path = monotone_assignment(np.where(finite, block, big))
-            near = np.abs(np.arange(b.size)[None, :] - path[:, None]) <= 1
-            out[np.ix_(a, b)] = np.where(near, block, np.inf)
-    return out
+            path = align(lambda i, j, a=a, b=b: pairs.score(a[i], b[j]), a.size, b.size)
+            near = np.clip(path[:, None] + np.arange(-1, 2)[None, :], 0, b.size - 1)
+            keep = np.r_[near[:, 0] < near[:, 1], [True] * a.size, near[:, 2] > near[:, 1]]
+            rows.append(np.tile(a, 3)[keep])
+            cols.append(b[near.T.ravel()][keep])
+        r, c = np.nonzero(streams[a][:, None] != streams[None, rest])
+        rows.append(a[r])
+        cols.append(rest[c])
+        yield np.concatenate(rows), np.concatenate(cols)
 
 
 def fill_missing(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -55,6 +55,8 @@ class Clocks(str, Enum):
 
 
 AUTO = "auto"
+AUTO_WINDOW = 10_000
+"""Images per window of ``window_images`` = auto (beyond twice as many)."""
 """``noise_px`` estimated from the data by the solver (``core.noise``)."""
 
 RAY_WEIGHT_SCALE = 4e-8
@@ -190,6 +192,8 @@ RULES: dict[str, Number | Flag | Choice] = {
     "robust_iterations": _count(0),
     "fix_swaps": Flag(),
     "segment_events": Flag(),
+    "workers": Number(1, MAX_COUNT, hi_open=False, integer=True, auto=True),
+    "window_images": Number(0, MAX_COUNT, hi_open=False, integer=True, auto=True),
 }
 """The allowed values of every option (``Options`` checks each assignment against them)."""
 
@@ -310,6 +314,21 @@ class Options:
     segment_events: bool = True
     """Find temporally disjoint events first (components of a shape-space W on the initial
     shapes) and solve each on its own."""
+    workers: int | str = AUTO
+    """Processes that solve a capture's events in parallel (``core.parallel``: one BLAS thread
+    each). ``auto``: one per core, from 1000 images; 1: all in this process. ``auto`` or an
+    integer >= 1."""
+    window_images: int | str = AUTO
+    """A capture of more images is solved in overlapping time windows of this many (a tenth of
+    them shared with the next window), stitched (``core.windows``). ``auto``: windows of
+    10 000 images beyond 20 000; 0: one solve, whatever the size. One subject only; needs two
+    or more video streams. ``auto`` or an integer >= 0."""
+
+    def window_size(self, num_images: int) -> int:
+        """Images per window for a capture of ``num_images`` (0: one solve)."""
+        if self.window_images == AUTO:
+            return AUTO_WINDOW if num_images > 2 * AUTO_WINDOW else 0
+        return self.window_images if num_images > self.window_images > 0 else 0
 
     def ray_weight(self, focal_px: float) -> float:
         """The lambda2 in force for cameras of focal length ``focal_px`` (hard rays, inf, with

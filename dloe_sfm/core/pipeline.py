@@ -15,6 +15,7 @@ from .capture import Capture
 from .clocks import fit_clocks, ray_equations, time_chain
 from .events import segment_events
 from .options import AUTO, Options, RobustLoss
+from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
 from .result import Result
 from .robust import (
@@ -101,7 +102,9 @@ def solve_events(
     progress: Progress | None = None,
 ) -> Result:
     """Solve every event on its own (from ``X_world`` when given, else each initialised on its
-    own) and assemble one result (orders concatenated by event). One event: its solve as is."""
+    own) and assemble one result (orders concatenated by event). One event: its solve as is.
+    Several: in ``options.workers`` processes (``core.parallel``); each reports to ``progress``
+    once, when solved."""
     if labels.max() == 0:
         return solve_event(capture, options, X_world, progress)
     n, p = capture.num_images, capture.num_points
@@ -110,11 +113,20 @@ def solve_events(
     D = np.empty(n)
     A_parts, W_parts, order, results = [], [], [], []
     offset = 0.0
-    for e in range(int(labels.max()) + 1):
-        idx = np.flatnonzero(labels == e)
+    events = [np.flatnonzero(labels == e) for e in range(int(labels.max()) + 1)]
+    tasks = [(capture.subset(idx), options, None if X_world is None else X_world[idx])
+             for idx in events]
+    workers = worker_count(options.workers, len(tasks), n)
+    for e, idx in enumerate(events):
         logger.info("event %d: %d images", e, idx.size)
-        r = solve_event(capture.subset(idx), options,
-                        None if X_world is None else X_world[idx], progress)
+    if workers > 1:
+        logger.info("%d events in %d worker processes", len(tasks), workers)
+        solved = map_in_processes(_solve_event_task, tasks, workers)
+    else:
+        solved = (solve_event(*task, progress) for task in tasks)
+    for idx, r in zip(events, solved, strict=True):
+        if workers > 1 and progress is not None:
+            progress(r.nit, r.nit, {"cost": r.cost_history[-1], "change": r.change_history[-1]})
         results.append(r)
         X[idx], D[idx] = r.X, r.D
         embedding[idx] = r.embedding - r.embedding.min() + offset
@@ -140,6 +152,11 @@ def solve_events(
         scale=results[0].scale,
         noise_px=max(r.noise_px for r in results),
     )
+
+
+def _solve_event_task(task: tuple[Capture, Options, np.ndarray | None]) -> Result:
+    """:func:`solve_event` of one (capture, options, X_world) in a worker process."""
+    return solve_event(*task)
 
 
 def robust_rounds(

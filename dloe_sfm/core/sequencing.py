@@ -14,7 +14,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.stats import kendalltau, theilslopes
 
+from .dtw import FULL_TABLE, align, monotone_assignment
 from .options import Distance, Embedding
+
+MDS_SAMPLE = 2000
+"""Images the length scale of the affine clocks' prior is measured on
+(``alternation.sequence``): a dense table of at most this size with videos."""
 
 
 def stream_members(streams: np.ndarray, frames: np.ndarray) -> list[np.ndarray]:
@@ -33,40 +38,33 @@ def arc_length(F: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(F, axis=0), axis=1))])
 
 
-def monotone_assignment(cost: np.ndarray) -> np.ndarray:
-    """Assign every row of cost (m, q) one column, columns never decreasing, minimum total cost.
-
-    Dynamic time warping where each row takes exactly one column. Returns (m,) column indices.
-    """
-    m, q = cost.shape
-    acc = np.empty_like(cost, dtype=np.float64)
-    back = np.empty((m, q), dtype=np.int64)
-    acc[0] = cost[0]
-    cols = np.arange(q)
-    for i in range(1, m):
-        prev_best = np.minimum.accumulate(acc[i - 1])
-        # argmin over k' <= k of acc[i-1]: where the running minimum was last lowered
-        is_new = np.concatenate([[True], acc[i - 1, 1:] < prev_best[:-1]])
-        back[i] = np.maximum.accumulate(np.where(is_new, cols, 0))
-        acc[i] = cost[i] + prev_best
-    path = np.empty(m, dtype=np.int64)
-    path[-1] = int(np.argmin(acc[-1]))
-    for i in range(m - 1, 0, -1):
-        path[i - 1] = back[i, path[i]]
-    return path
-
-
 def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Arc-length position on polyline B of every row of A, assigned in order.
 
     A (m, d) a stream's shapes in frame order, B (q, d) with q >= 2 another stream's polyline.
     Each row of A is assigned to one segment of B, the segment index never decreasing along A
     (dynamic time warping with point-to-segment costs), and placed at the foot of its
-    perpendicular on that segment. Returns (m,) positions in B's arc length.
+    perpendicular on that segment. Tables of up to ``dtw.FULL_TABLE`` entries are aligned whole
+    (from matrix products); longer streams coarse to fine (``dtw.align``), in linear time.
+    Returns (m,) positions in B's arc length.
     """
     seg = np.diff(B, axis=0)  # (q-1, d)
     seg_len2 = (seg**2).sum(axis=1)
     start = B[:-1]
+    m = A.shape[0]
+    s = arc_length(B)
+    if m * seg.shape[0] > FULL_TABLE:
+        def foot(i: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """(t, distance) of rows i of A to segments k (broadcast)."""
+            rel = A[i] - start[k]
+            a_dot_s = np.einsum("...d,...d->...", rel, seg[k])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.nan_to_num(np.clip(a_dot_s / seg_len2[k], 0.0, 1.0))
+            gap = rel - t[..., None] * seg[k]
+            return t, np.sqrt(np.einsum("...d,...d->...", gap, gap))
+
+        path = align(lambda i, k: foot(i, k)[1], m, seg.shape[0])
+        return s[path] + foot(np.arange(m), path)[0] * np.sqrt(seg_len2[path])
     # |a - b_k - t s_k|^2 from matrix products, never an (m, q, d) temporary
     a_dot_s = A @ seg.T - (start * seg).sum(axis=1)  # (a - b_k) . s_k
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -75,8 +73,6 @@ def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     d2 = (A**2).sum(axis=1)[:, None] + (start**2).sum(axis=1)[None] - 2 * A @ start.T
     cost = np.sqrt(np.maximum(d2 - 2 * t * a_dot_s + t**2 * seg_len2, 0.0))  # (m, q-1)
     path = monotone_assignment(cost)
-    m = A.shape[0]
-    s = arc_length(B)
     return s[path] + t[np.arange(m), path] * np.sqrt(seg_len2[path])
 
 
@@ -110,9 +106,14 @@ def place_on_streams(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> 
 
 
 def arc_distance(
-    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None
+    X: np.ndarray,
+    streams: np.ndarray,
+    frames: np.ndarray,
+    placement: Placement | None = None,
+    subset: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Arc distance between images, (N, N) symmetric.
+    """Arc distance between images, (N, N) symmetric (between the images ``subset`` only, when
+    given: the same entries, placed on the polylines of all images).
 
     Within a stream: path length of its 3D shapes between the two images. Across streams a and b:
     each image of a is placed on b's polyline by order-preserving DTW and the distance is the arc
@@ -120,14 +121,16 @@ def arc_distance(
     lone photos are compared through every stream's polyline (median). Without any stream of two
     or more images this falls back to the Euclidean distance.
     """
-    n = X.shape[0]
+    subset = np.arange(X.shape[0]) if subset is None else subset
+    n = subset.size
     pl = placement or place_on_streams(X, streams, frames)
     if not pl.lines:
-        return euclidean_distance(X)
-    pos = pl.pos
-    line_of = np.full(n, -1)
+        return euclidean_distance(X[subset])
+    pos = pl.pos[:, subset]
+    line_of = np.full(X.shape[0], -1)
     for c, idx in enumerate(pl.lines):
         line_of[idx] = c
+    line_of = line_of[subset]
     Z = np.zeros((n, n))
     cnt = np.zeros((n, n))
     for c in range(len(pl.lines)):
@@ -214,10 +217,13 @@ def distance_matrix(
     frames: np.ndarray,
     kind: Distance | str = Distance.ARC,
     placement: Placement | None = None,
+    subset: np.ndarray | None = None,
 ) -> np.ndarray:
+    """Distances between images (``subset``: between those only), (N, N): dense, so the
+    sequencing of a capture with videos uses a subset (``alternation.sequence``)."""
     if Distance(kind) is Distance.ARC:
-        return arc_distance(X, streams, frames, placement)
-    return euclidean_distance(X)
+        return arc_distance(X, streams, frames, placement, subset)
+    return euclidean_distance(X if subset is None else X[subset])
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:

@@ -1,7 +1,9 @@
 """Alternating convex search for DLOE (Xu & Dunn, ICCV 2019): the entry point.
 
 One subject: :func:`dloe_sfm.core.pipeline.solve_single` (initialise -> events -> per event:
-alternate -> robust rounds -> clocks -> assemble); several detections per image:
+alternate -> robust rounds -> clocks -> assemble), or beyond ``Options.window_images`` images
+:func:`dloe_sfm.core.windows.solve_windowed` (overlapping time windows, each solved so, stitched);
+several detections per image:
 :func:`dloe_sfm.core.multitarget.reconstruct_subjects`, which associates them and then runs the
 same pipeline.
 """
@@ -15,6 +17,7 @@ from .multitarget import reconstruct_subjects
 from .options import Options
 from .pipeline import solve_single
 from .result import Result
+from .windows import solve_windowed
 
 
 def reconstruct(
@@ -28,8 +31,11 @@ def reconstruct(
     :data:`dloe_sfm.core.alternation.Progress`).
     """
     options = options or Options()
+    size = options.window_size(capture.num_images)
     if capture.x.ndim == 4:
         result = reconstruct_subjects(capture, options, progress=progress)
+    elif size:
+        result = solve_windowed(capture, options, size, size // 10)
     else:
         result = solve_single(capture, options, progress)
     return assess(capture, result, lambda1=options.lambda1)

@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg import cho_solve_banded, cholesky_banded
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 
 @dataclass(kw_only=True)
@@ -169,6 +171,11 @@ def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr
     return sp.csr_matrix(L.T @ L + lambda1 * M)
 
 
+BAND_WIDTH = 64
+"""The X-step factors a system of m unknowns as a band up to a bandwidth of
+``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), wider ones by SuperLU (:func:`x_step`)."""
+
+
 def x_step(
     W: sp.csr_matrix,
     D: np.ndarray,
@@ -178,60 +185,180 @@ def x_step(
     lambda2: float,
     X_prev: np.ndarray,
 ) -> np.ndarray:
-    """Optimal X for fixed W, D: per point p a sparse linear system.
+    """Optimal X for fixed W, D: per point p a sparse symmetric linear system.
 
     With ``lambda2 = inf`` observed points are pinned to their rays, ``X_np = C_n + l_np r_np``,
-    and only the depths l_np (plus the 3 coordinates of unobserved points) are unknown. Otherwise
-    the O term ``l2 w_np |(X_np - C_n) x r_np|^2`` joins the smoothness form Q. X_prev fills in
-    points no equation reaches (never the case on a connected graph).
+    and only the depths l_np (plus the 3 coordinates of unobserved points) are unknown
+    (:func:`_hard_point`). Otherwise the O term ``l2 w_np |(X_np - C_n) x r_np|^2`` joins the
+    smoothness form Q, 3 unknowns per image (:func:`_soft_band`). X_prev fills in points no
+    equation reaches (never the case on a connected graph).
+
+    W's graph is chain-like in time, so the images are ordered once per call by reverse
+    Cuthill-McKee on Q's pattern, and each point's unknowns follow its images in that order
+    (1 or 3 per image): its system is then a band, assembled directly from Q's entries and
+    solved by LAPACK's banded Cholesky in O(m b^2) for m unknowns and bandwidth b. A band wider
+    than ``max(BAND_WIDTH, sqrt(m))`` (a graph with long edges, where the band would approach a
+    dense matrix), or a system the banded Cholesky finds not numerically positive definite, goes
+    to SuperLU instead (:func:`_superlu`).
     """
     n, p = prob.rays.shape[:2]
     Q = smoothness_matrix(W, D, lambda1)
-    hard = np.isinf(lambda2)
-    Q3 = sp.kron(Q, sp.identity(3), format="csr") if hard else None
+    reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
+    perm = reverse_cuthill_mckee(Q, symmetric_mode=True)
+    rank = np.empty(n, dtype=np.int64)
+    rank[perm] = np.arange(n)
+    coo = Q.tocoo()
+    upper = rank[coo.row] <= rank[coo.col]
+    qi, qk, q = coo.row[upper].astype(np.int64), coo.col[upper].astype(np.int64), coo.data[upper]
     vis = prob.visible
     r0 = np.nan_to_num(prob.rays)
     X = np.empty((n, p, 3))
-    reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
-    for j in range(p):
-        if hard:
-            obs = vis[:, j]
-            # X_vec (3N) = c + B z: one depth column per observed image, 3 unit columns otherwise
-            n_obs = int(obs.sum())
-            col_of = np.empty(n, dtype=np.int64)
-            col_of[obs] = np.arange(n_obs)
-            miss = np.flatnonzero(~obs)
-            col_of[miss] = n_obs + 3 * np.arange(miss.size)
-            rows_o = (3 * np.flatnonzero(obs)[:, None] + np.arange(3)).ravel()
-            cols_o = np.repeat(col_of[obs], 3)
-            vals_o = r0[obs, j].ravel()
-            rows_m = (3 * miss[:, None] + np.arange(3)).ravel()
-            cols_m = (col_of[miss][:, None] + np.arange(3)).ravel()
-            Bm = sp.csr_matrix(
-                (
-                    np.concatenate([vals_o, np.ones(rows_m.size)]),
-                    (np.concatenate([rows_o, rows_m]), np.concatenate([cols_o, cols_m])),
-                ),
-                shape=(3 * n, n_obs + 3 * miss.size),
-            )
-            c = np.where(obs[:, None], prob.C, 0.0).ravel()
-            H = sp.csc_matrix(Bm.T @ Q3 @ Bm)
-            rhs = -(Bm.T @ (Q3 @ c))
-            H = sp.csc_matrix(H + reg * sp.identity(H.shape[0], format="csc"))
-        else:
-            H, rhs = _soft_system(Q, r0[:, j], prob.C, lambda2 * prob.weights[:, j], reg)
-            c = np.zeros(3 * n)
-            Bm = None
-        # symmetric mode + minimum degree on A^T + A: faster than SuperLU's defaults here
-        # (docs/method.md, "Speed")
-        lu = spla.splu(
-            H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-        )
-        z = lu.solve(rhs)
-        X[:, j] = (c + (Bm @ z if Bm is not None else z)).reshape(n, 3)
+    if np.isinf(lambda2):
+        rays = r0.transpose(1, 2, 0).copy()  # (P, 3, N): one coordinate over the images
+        for j in range(p):
+            X[:, j] = _hard_point(Q, perm, qi, qk, q, rays[j], vis[:, j], prob.C, reg)
+    else:
+        width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)
+        band_Q = None
+        if width <= max(BAND_WIDTH, np.sqrt(3 * n)):
+            # kron(Q, I3) as a band (_banded_cholesky), image n's coordinates at 3 rank_n + t
+            band_Q = np.zeros((3 * n, width + 1))
+            band_Q[3 * rank[qi][:, None] + np.arange(3), 3 * (rank[qk] - rank[qi])[:, None]] = (
+                q[:, None])
+        for j in range(p):
+            wgt = lambda2 * prob.weights[:, j]
+            z = None if band_Q is None else _soft_band(band_Q, rank, r0[:, j], prob.C, wgt, reg)
+            if z is None:
+                H, rhs = _soft_system(Q, r0[:, j], prob.C, wgt, reg)
+                X[:, j] = _superlu(H, rhs).reshape(n, 3)
+            else:
+                X[:, j] = z.reshape(n, 3)[rank]
     bad = ~np.isfinite(X)
     X[bad] = X_prev[bad]
     return X
+
+
+def _hard_point(
+    Q: sp.csr_matrix,
+    perm: np.ndarray,
+    qi: np.ndarray,
+    qk: np.ndarray,
+    q: np.ndarray,
+    r: np.ndarray,
+    obs: np.ndarray,
+    C: np.ndarray,
+    reg: float,
+) -> np.ndarray:
+    """X (N, 3) of one point with hard rays r (3, N) in the images ``obs``: ``X = c + B z``, one
+    depth column r_n of B per observed image (c_n = C_n) and three unit columns per unobserved
+    one (c_n = 0), ``(B^T kron(Q, I3) B + reg I) z = -B^T kron(Q, I3) c``.
+
+    The unknowns follow the images in the band order ``perm``, and the system is assembled from
+    Q's entries ``q`` at (``qi``, ``qk``), ``qi`` no later than ``qk`` in that order, rather than
+    as sparse products: Q_nm r_n . r_m between observed images, Q_nm r_n (or r_m) between an
+    observed and an unobserved one, Q_nm I3 between unobserved ones.
+    """
+    n = obs.size
+    size = np.where(obs, 1, 3)
+    ends = np.cumsum(size[perm])
+    m = int(ends[-1])
+    start = np.empty(n, dtype=np.int64)
+    start[perm] = ends - size[perm]
+    oi, ok = obs[qi], obs[qk]
+    # H's entries on and below the diagonal (rows >= cols), one coordinate t at a time
+    rows, cols, vals = [], [], []
+    pick = oi & ok
+    i, k, qq = qi[pick], qk[pick], q[pick]
+    rows.append(start[k])
+    cols.append(start[i])
+    vals.append(qq * ((r[0, i] * r[0, k] + r[1, i] * r[1, k]) + r[2, i] * r[2, k]))
+    for t in range(3):
+        pick = oi & ~ok
+        i, k, qq = qi[pick], qk[pick], q[pick]
+        rows.append(start[k] + t)
+        cols.append(start[i])
+        vals.append(qq * r[t, i])
+        pick = ~oi & ok
+        i, k, qq = qi[pick], qk[pick], q[pick]
+        rows.append(start[k])
+        cols.append(start[i] + t)
+        vals.append(qq * r[t, k])
+        pick = ~oi & ~ok
+        i, k, qq = qi[pick], qk[pick], q[pick]
+        rows.append(start[k] + t)
+        cols.append(start[i] + t)
+        vals.append(qq)
+    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    seen, miss = np.flatnonzero(obs), np.flatnonzero(~obs)
+    g = Q @ np.where(obs[:, None], C, 0.0)  # kron(Q, I3) c, (N, 3)
+    rhs = np.empty(m)
+    rhs[start[seen]] = -((r[0, seen] * g[seen, 0] + r[1, seen] * g[seen, 1])
+                         + r[2, seen] * g[seen, 2])
+    rhs[start[miss][:, None] + np.arange(3)] = -g[miss]
+    width = int((rows - cols).max(initial=0))
+    z = None
+    if width <= max(BAND_WIDTH, np.sqrt(m)):
+        band = np.zeros((m, width + 1))
+        band.reshape(-1)[cols * (width + 1) + (rows - cols)] = vals
+        band[:, 0] += reg
+        z = _banded_cholesky(band, rhs)
+    if z is None:
+        off = rows != cols
+        H = sp.csc_matrix(
+            (np.concatenate([vals, vals[off]]),
+             (np.concatenate([rows, cols[off]]), np.concatenate([cols, rows[off]]))),
+            shape=(m, m),
+        )
+        z = _superlu(sp.csc_matrix(H + reg * sp.identity(m, format="csc")), rhs)
+    X = np.empty((n, 3))
+    X[seen] = C[seen] + r[:, seen].T * z[start[seen]][:, None]
+    X[miss] = z[start[miss][:, None] + np.arange(3)]
+    return X
+
+
+def _soft_band(
+    band_Q: np.ndarray, rank: np.ndarray, r: np.ndarray, C: np.ndarray, wgt: np.ndarray, reg: float
+) -> np.ndarray | None:
+    """z (3N,) of one point with soft rays by banded Cholesky, image n's coordinates at
+    ``3 rank_n + (0, 1, 2)``: the system of :func:`_soft_system` with its diagonal blocks
+    ``w_n (I - r_n r_n^T)`` added to ``band_Q``, kron(Q, I3) as a band (:func:`_banded_cholesky`).
+    None when it is not numerically positive definite."""
+    ray = wgt[:, None, None] * (np.eye(3)[None] - r[:, :, None] * r[:, None, :])  # (N, 3, 3)
+    s, u = np.triu_indices(3)
+    band = band_Q.copy()
+    band[3 * rank[:, None] + s, u - s] += ray[:, s, u]
+    band[:, 0] += reg
+    rhs = np.empty((r.shape[0], 3))
+    rhs[rank] = (
+        (0.0 + ray[:, :, 0] * C[:, None, 0]) + ray[:, :, 1] * C[:, None, 1]
+    ) + ray[:, :, 2] * C[:, None, 2]
+    return _banded_cholesky(band, rhs.ravel())
+
+
+def _banded_cholesky(band: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
+    """z of ``H z = rhs``, H (m, m) symmetric of bandwidth b given by ``band`` (m, b + 1),
+    ``H[i, j]`` at ``band[j, i - j]`` for ``j <= i <= j + b`` (so ``band.T`` is LAPACK's lower
+    band storage, in Fortran order); None when H is not numerically positive definite. Both
+    ``band`` and ``rhs`` are overwritten. A non-finite H gives a non-finite z or None.
+
+    Lower rather than upper storage: with upper storage LAPACK's banded Cholesky updates with
+    strided vectors, and OpenBLAS was found to start its threads for each of those small BLAS
+    calls, which costs far more than the work itself when the cores are busy; the unit-stride
+    calls of lower storage run without that overhead."""
+    try:
+        factor = cholesky_banded(band.T, overwrite_ab=True, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    return cho_solve_banded((factor, True), rhs, overwrite_b=True, check_finite=False)
+
+
+def _superlu(H: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
+    """z of ``H z = rhs`` by SuperLU: symmetric mode and minimum degree ordering on A^T + A,
+    faster than its defaults on these systems (docs/method.md, "Speed")."""
+    lu = spla.splu(
+        H, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
+    return lu.solve(rhs)
 
 
 def _soft_system(

@@ -9,6 +9,7 @@ from pathlib import Path
 from .. import progress
 from ..config import load_options
 from ..core.options import Options
+from ..core.result import Result
 from ..core.solver import reconstruct
 from ..io import check_output, load_capture, save_result
 from ..resources import check_solve_memory
@@ -24,8 +25,8 @@ def main(
     overrides: list[str] | None = None,
     options: Options | None = None,
     overwrite: bool = False,
-) -> Path:
-    """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns ``out``.
+) -> Result:
+    """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns the result.
 
     ``out`` is checked first (``io.check_output``): never an input; an existing file is only
     replaced with ``overwrite`` and when it is a result file.
@@ -53,7 +54,7 @@ def main(
         result.seconds,
         int(result.events.max()) + 1,
     )
-    return out
+    return result
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
