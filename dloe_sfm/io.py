@@ -140,7 +140,12 @@ def _remove(path: Path) -> None:
 
 
 def _remove_stale_temps(path: Path) -> None:
-    """Delete our temporaries for ``path`` left by a process that no longer runs (SIGKILL)."""
+    """Delete our temporaries for ``path`` left by a process that no longer runs (SIGKILL).
+    Inside a folder that is itself one of our temporaries there are none (a killed run's
+    folder goes as a whole), and the scan is skipped: a folder of N files written one by one
+    would cost N^2."""
+    if any(part.startswith(_TEMP_PREFIX) for part in path.parent.parts):
+        return
     for tmp in path.parent.glob(_TEMP_PREFIX + "*"):
         match = _TEMP_NAME.fullmatch(tmp.name)
         if match and match[2] == path.name and not _pid_alive(int(match[1])):

@@ -73,7 +73,7 @@ DEFAULT_OUT = Path("outputs") / "benchmark"
 def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick: bool = False,
          seeds: int | None = None, motions: list[str] | None = None, jobs: int = 1,
          duration: float | None = None, sizes: list[int] | None = None,
-         streams: int | None = None) -> dict:
+         streams: int | None = None, rate: float | None = None) -> dict:
     """Run one benchmark suite; returns the document written to ``<out>/results.json``.
 
     Parameters
@@ -87,8 +87,8 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     jobs : worker processes (each single-threaded); the runtime suite always runs one at a time.
     duration : clip length in seconds (default 2.5 s ~ the paper's 300 frames, quick 1 s).
     sizes : runtime suite: target numbers of images.
-    streams : runtime suite: video streams at 30 Hz (default :data:`RUNTIME_STREAMS`); the
-        clip must last sizes / (30 streams) seconds.
+    streams, rate : runtime suite: video streams (default :data:`RUNTIME_STREAMS`) and their
+        frame rate (default 30 Hz); the clip must last sizes / (rate streams) seconds.
     """
     if suite not in SUITES:
         raise InputError(f"unknown suite '{suite}', choose from {', '.join(SUITES)}")
@@ -138,23 +138,25 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     else:
         sizes = sizes or list(RUNTIME_SIZES[quick])
         streams = streams or RUNTIME_STREAMS
-        if streams < 2:
-            raise InputError(f"--streams must be 2 or more, got {streams}")
-        per_second = streams * 30.0
+        rate = rate or 30.0
+        if streams < 2 or not 0 < rate <= 1000:
+            raise InputError(f"--streams must be 2 or more and --rate in (0, 1000], got "
+                             f"{streams} and {rate:g}")
+        per_second = streams * rate
         seq = load_mocap(paths[0])
         clip = seq.positions.shape[0] / seq.fps
         if max(sizes) / per_second > clip:
             raise InputError(f"{Path(paths[0]).name} is {clip:.1f} s long: {max(sizes)} images "
                              f"need {max(sizes) / per_second:.1f} s at {streams} streams of "
-                             f"30 Hz (--streams {math.ceil(max(sizes) / (30.0 * clip))} or "
-                             "more)")
+                             f"{rate:g} Hz (--streams {math.ceil(max(sizes) / (rate * clip))} or "
+                             "more, or a higher --rate)")
         specs = [{"motion": paths[0], "setting": int(n),
                   "settings": simulation_settings(0, n / per_second, num_streams=streams,
-                                                  rate=30.0)} for n in sizes]
+                                                  rate=rate)} for n in sizes]
         records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
         summary = summarise_runtime(records)
         table = runtime_table(records, summary)
-        doc.update(sizes=list(sizes), num_streams=streams, rate=30.0)
+        doc.update(sizes=list(sizes), num_streams=streams, rate=rate)
         png = plot_runtime(records, summary, out / "runtime.png")
     doc.update(seconds=time.perf_counter() - t0, summary=summary, runs=records, table=table,
                plot=str(png))

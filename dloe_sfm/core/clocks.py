@@ -37,6 +37,8 @@ GRID_STEPS = 16
 GRID_POINTS = 8
 """The grid's residual uses this many most-observed points, the fit after it all of them (a
 fraction of the cost, the same clocks: docs/method.md, "Stream clocks")."""
+GRID_IMAGES = 2000
+"""...and the middle this many images in the first-guess time order (all of them in the fit)."""
 
 
 def ray_equations(
@@ -257,7 +259,8 @@ def fit_clocks(
     image in a stream; ``E``, ``rhs`` from :func:`ray_equations`. The longest stream is the
     reference (its first-guess start and the streams' median first-guess rate are kept). The
     other streams' offsets are searched on a grid of ``grid_steps`` per frame period (its
-    residual on the ``grid_points`` most-observed points), then fitted with one shared rate;
+    residual on the ``grid_points`` most-observed points of the middle :data:`GRID_IMAGES`
+    images), then fitted with one shared rate on all images;
     unless ``shared_rate`` is True, their rates are then freed too, starting from that fit.
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
@@ -291,10 +294,17 @@ def fit_clocks(
     h_mid = hs[len(hs) // 2]
     steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:grid_points]
-    grid_rays = _rays(E[:, seen], rhs[:, seen], visible[:, seen])
+    # the offsets are the same all along: the grid looks at the middle GRID_IMAGES images only
+    win = np.arange(t_init.size)
+    grid_start = start
+    if t_init.size > GRID_IMAGES:
+        lo = (t_init.size - GRID_IMAGES) // 2
+        win = np.sort(np.argsort(t_init, kind="stable")[lo:lo + GRID_IMAGES])
+        grid_start = float(t_init[win].min()) - 3 * period - max(hs)
+    grid_rays = _rays(E[win][:, seen], rhs[win][:, seen], visible[win][:, seen])
 
     def grid_residual(x: np.ndarray) -> float:
-        r = _SplineFit(times(x), grid_rays, h_mid, start).res
+        r = _SplineFit(times(x)[win], grid_rays, h_mid, grid_start).res
         return float(r @ r)
 
     value = None  # the grid's residual at x (its trial 0 along every coordinate)

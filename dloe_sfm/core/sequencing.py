@@ -17,6 +17,9 @@ from scipy.stats import kendalltau, theilslopes
 from .dtw import FULL_TABLE, align, monotone_assignment
 from .options import Distance, Embedding
 
+THEIL_SEN_POINTS = 256
+"""Images of a stream (evenly spaced) the robust line of one stream against another uses
+(``affine_time``: Theil-Sen's cost grows as their square)."""
 MDS_SAMPLE = 2000
 """Images the length scale of the affine clocks' prior is measured on
 (``alternation.sequence``): a dense table of at most this size with videos."""
@@ -157,7 +160,8 @@ def affine_time(
 
     Stream s's images are at ``t = a_s + b_s frame``. Every image of a stream is placed on every
     other stream's polyline by order-preserving DTW, which gives it a fractional frame number
-    there; a robust (Theil-Sen) line through those pairs gives the relative offset and rate of
+    there; a robust (Theil-Sen) line through those pairs (at most ``THEIL_SEN_POINTS`` of
+    them, evenly spaced) gives the relative offset and rate of
     the two streams, and a least-squares fit over all pairs gives every (a_s, b_s), with the
     longest stream as the reference clock. Lone photos take the median time at which the streams'
     polylines place them. Returns (N,) times in the reference stream's frames, or None when no
@@ -179,7 +183,10 @@ def affine_time(
     for c in range(k):
         for d, other in enumerate(lines):
             if d != c:
-                slope, icpt, *_ = theilslopes(at[c, other], frames[other].astype(float))
+                # Theil-Sen takes all pairs of points: on evenly spaced ones of a long stream
+                few = other[np.unique(np.linspace(0, other.size - 1,
+                                                  min(other.size, THEIL_SEN_POINTS)).astype(int))]
+                slope, icpt, *_ = theilslopes(at[c, few], frames[few].astype(float))
                 if slope > 0:
                     pairs.append((d, c, np.log(slope), icpt, other.size))
     # t = a_s + b_s f  =>  b_d = slope b_c,  a_d = a_c + b_c icpt

@@ -171,7 +171,7 @@ def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr
     return sp.csr_matrix(L.T @ L + lambda1 * M)
 
 
-BAND_WIDTH = 64
+BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
 ``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), wider ones by SuperLU (:func:`x_step`)."""
 

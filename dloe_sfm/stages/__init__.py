@@ -9,5 +9,7 @@ and a ``main(...)`` callable from Python:
 - ``import_calibration``: a calibration made elsewhere -> a COLMAP model;
 - ``view``: play a ``reconstruct`` output in open3d's window (or write a GIF);
 - ``evaluate``: score a result against ground truth (the scoring itself: ``dloe_sfm.evaluate``);
-- ``benchmark``: the paper's experiments with every baseline.
+- ``benchmark``: the paper's experiments with every baseline;
+- ``sync``: each stream's time offset and rate of an output;
+- ``batch``: many captures / COLMAP workspaces as Dask tasks (``dloe_sfm.batch``).
 """

@@ -35,15 +35,17 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="clip length, s (default 2.5, quick 1)")
     parser.add_argument("--sizes", type=int, nargs="+", help="runtime suite: numbers of images")
     parser.add_argument("--streams", type=int,
-                        help="runtime suite: video streams at 30 Hz (default 8); 10^4 images of "
-                             "the 26 s basketball_signal_1 clip need 13 or more")
+                        help="runtime suite: video streams (default 8); 10^4 images of the 26 s "
+                             "basketball_signal_1 clip need 13 or more at 30 Hz")
+    parser.add_argument("--rate", type=float,
+                        help="runtime suite: the streams' frame rate, Hz (default 30)")
 
 
 def run(args: argparse.Namespace) -> int:
     jobs = max(1, min(args.jobs, os.cpu_count() or 1))
     doc = main(args.suite, out=args.out, data=args.data, quick=args.quick, seeds=args.seeds,
                motions=args.motions, jobs=jobs, duration=args.duration, sizes=args.sizes,
-               streams=args.streams)
+               streams=args.streams, rate=args.rate)
     print(doc["table"])
     return 0
 
