@@ -27,7 +27,12 @@ from pathlib import Path
 from . import __version__, progress
 from .cli import one_line
 from .config import load_options
-from .core.options import shown
+from .core.assess import assess
+from .core.capture import Capture
+from .core.options import AUTO_WINDOW, Options, shown
+from .core.parallel import THREAD_VARIABLES
+from .core.result import Result
+from .core.windows import solve_windowed
 from .errors import InputError
 from .io import atomic_path, check_output
 from .keypoints import FORMATS
@@ -46,7 +51,7 @@ RESULT = "result.npz"
 """A solve job's result file inside its folder ``out/<name>/``."""
 MAX_MANIFEST_BYTES = 1 << 24
 """A manifest lists jobs in a few hundred bytes each; a larger file is not one (and is not read)."""
-SINGLE_THREADED = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+SINGLE_THREADED = dict.fromkeys(THREAD_VARIABLES, "1")
 """Set in the local cluster's workers before they start: one BLAS / OpenMP thread each, so that
 the workers (one per core) do not oversubscribe the cores."""
 
@@ -408,6 +413,23 @@ def _client(scheduler: str | None, workers: int) -> Iterator:
         for key in set(os.environ) - set(environ):
             del os.environ[key]
         os.environ.update(environ)
+
+
+def solve_in_windows(capture: Capture, options: Options | None = None, *,
+                     scheduler: str | None = None, workers: int | None = None) -> Result:
+    """One capture too large for one solve: its overlapping time windows (``core.windows``,
+    ``options.window_images`` images each, at least 2: default 10 000) solved as Dask tasks on
+    the cluster at ``scheduler`` or a local one of ``workers`` processes (default: one per
+    core), stitched here and assessed as :func:`dloe_sfm.core.solver.reconstruct` does. The same
+    numbers as the windows solved in this process."""
+    options = options or Options()
+    size = options.window_size(capture.num_images) or min(AUTO_WINDOW, capture.num_images // 2)
+    with _client(scheduler, workers or os.cpu_count() or 1) as client:
+        def mapper(fn, items):
+            return client.gather(client.map(fn, list(items), pure=False))
+
+        result = solve_windowed(capture, options, size, size // 10, mapper)
+    return assess(capture, result, lambda1=options.lambda1)
 
 
 def _check_jobs(jobs: Sequence[Job]) -> None:

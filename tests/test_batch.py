@@ -220,3 +220,22 @@ def test_outputs_and_names_are_checked_first(captures, tmp_path, capsys) -> None
     code, err = run_cli(["batch", files[0], "--out", files[0].parent], capsys)
     assert code == 2 and "the output contains the input file" in error_line(err)
     assert not (tmp_path / "x").exists() and not (files[0].parent / "x").exists()
+
+
+def test_windows_of_one_capture_on_a_local_cluster(assets_dir) -> None:
+    """A capture's overlapping time windows as Dask tasks: the numbers of the windows solved
+    in this process (one BLAS thread each way)."""
+    from dloe_sfm.core.options import Options
+    from dloe_sfm.core.solver import reconstruct
+    from dloe_sfm.synth import SimulationSettings as Settings
+
+    cap, truth = simulate(load_mocap(assets_dir / "mocap" / "basketball_signal_1.npz"),
+                          Settings(duration=1.5, num_streams=4, rate=30.0))
+    options = Options(window_images=80, workers=1, max_iterations=30)
+    on_dask = batch.solve_in_windows(cap, options, workers=2)
+    here = reconstruct(cap, options)
+    np.testing.assert_array_equal(on_dask.X, here.X)
+    np.testing.assert_array_equal(on_dask.order, here.order)
+    assert (on_dask.W != here.W).nnz == 0
+    assert np.array_equal(on_dask.image_status, here.image_status)
+    assert 1000 * np.linalg.norm(on_dask.X - truth.X, axis=2).mean() < 1.0

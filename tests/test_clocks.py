@@ -134,3 +134,17 @@ def test_stream_clocks_default_follows_the_ray_weight():
     assert not Options(lambda2=1e3).clocks_on
     assert Options(noise_px=2.0, stream_clocks=True).clocks_on
     assert Options(stream_clocks="false").stream_clocks is Clocks.OFF
+
+
+def test_spline_times_before_the_first_knot_are_refused(rng):
+    """A clock that puts an image before the first knot (a wild Levenberg-Marquardt trial) is
+    refused with an error, never indexed out of the basis (which corrupted memory)."""
+    n, p = 20, 2
+    rays = rng.normal(size=(n, p, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), np.ones((n, p)))
+    obs = _rays(E, rhs, np.ones((n, p), dtype=bool))
+    t = np.linspace(0.0, 1.0, n)
+    _SplineFit(t, obs, 0.25, -0.1)
+    with pytest.raises(ValueError, match="before the first knot"):
+        _SplineFit(t - 0.2, obs, 0.25, -0.1)

@@ -37,6 +37,9 @@ GRID_STEPS = 16
 GRID_POINTS = 8
 """The grid's residual uses this many most-observed points, the fit after it all of them (a
 fraction of the cost, the same clocks: docs/method.md, "Stream clocks")."""
+OUT_OF_RANGE = 1e150
+"""The fit's cost at clocks that put an image before the splines' first knot (a wild trial step
+of Levenberg-Marquardt): far above any real cost, so the step is rejected and shortened."""
 GRID_IMAGES = 2000
 """...and the middle this many images in the first-guess time order (all of them in the fit)."""
 
@@ -137,6 +140,8 @@ class _SplineFit:
     ) -> None:
         n, p = rays.pull.shape[:2]
         u = (t - start) / spacing
+        if not (np.isfinite(u).all() and u.min() >= 0):
+            raise ValueError("spline times before the first knot or not finite")
         j = np.floor(u).astype(np.int64)
         nb = int(j.max()) + 4
         b, db = _cubic_bspline(u - j)
@@ -337,6 +342,10 @@ def fit_clocks(
             return cache[key]
 
         def squares(y: np.ndarray) -> float:
+            z = x.copy()
+            z[cols] = y
+            if times(z).min() < start:  # a trial step beyond the knots: rejected as worse
+                return OUT_OF_RANGE
             return sum(float(f.res @ f.res) / n**2 for f, n in zip(fits(y), norms, strict=True))
 
         def jacobian(y: np.ndarray) -> np.ndarray:

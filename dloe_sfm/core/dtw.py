@@ -26,22 +26,7 @@ def monotone_assignment(cost: np.ndarray) -> np.ndarray:
 
     Dynamic time warping where each row takes exactly one column. Returns (m,) column indices.
     """
-    m, q = cost.shape
-    acc = np.empty_like(cost, dtype=np.float64)
-    back = np.empty((m, q), dtype=np.int64)
-    acc[0] = cost[0]
-    cols = np.arange(q)
-    for i in range(1, m):
-        prev_best = np.minimum.accumulate(acc[i - 1])
-        # argmin over k' <= k of acc[i-1]: where the running minimum was last lowered
-        is_new = np.concatenate([[True], acc[i - 1, 1:] < prev_best[:-1]])
-        back[i] = np.maximum.accumulate(np.where(is_new, cols, 0))
-        acc[i] = cost[i] + prev_best
-    path = np.empty(m, dtype=np.int64)
-    path[-1] = int(np.argmin(acc[-1]))
-    for i in range(m - 1, 0, -1):
-        path[i - 1] = back[i, path[i]]
-    return path
+    return banded_assignment(cost, np.zeros(cost.shape[0], dtype=np.int64))
 
 
 def banded_assignment(cost: np.ndarray, lo: np.ndarray) -> np.ndarray:
@@ -55,6 +40,7 @@ def banded_assignment(cost: np.ndarray, lo: np.ndarray) -> np.ndarray:
     k = np.arange(w)
     for i in range(1, m):
         prev_best = np.minimum.accumulate(acc[i - 1])
+        # argmin over k' <= k of acc[i-1]: where the running minimum was last lowered
         is_new = np.concatenate([[True], acc[i - 1, 1:] < prev_best[:-1]])
         prev_arg = np.maximum.accumulate(np.where(is_new, k, 0))
         # column lo[i] + j sees the previous row's window up to its own column

@@ -17,7 +17,7 @@ from .events import segment_events
 from .options import AUTO, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
-from .result import Result
+from .result import Result, merged_history
 from .robust import (
     apply_swaps,
     find_swaps,
@@ -142,15 +142,9 @@ def solve_events(
         D=D,
         events=labels,
         embedding=embedding,
-        cost_history=np.concatenate([r.cost_history for r in results]),
-        change_history=np.concatenate([r.change_history for r in results]),
-        nit=sum(r.nit for r in results),
-        success=all(r.success for r in results),
-        message="; ".join(f"event {e}: {r.message}" for e, r in enumerate(results)),
         seconds=sum(r.seconds for r in results),
-        timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         scale=results[0].scale,
-        noise_px=max(r.noise_px for r in results),
+        **merged_history(results, "event"),
     )
 
 

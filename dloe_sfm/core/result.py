@@ -120,3 +120,18 @@ class Result:
         rank = np.empty_like(self.order)
         rank[self.order] = np.arange(self.order.size)
         return rank
+
+
+def merged_history(results: list[Result], label: str) -> dict:
+    """The fields of one :class:`Result` made of ``results`` solved apart (events, windows) that
+    only sum up theirs: sweeps, costs, messages (``"<label> k: ..."``), timings, the noise."""
+    return {
+        "cost_history": np.concatenate([r.cost_history for r in results]),
+        "change_history": np.concatenate([r.change_history for r in results]),
+        "nit": sum(r.nit for r in results),
+        "success": all(r.success for r in results),
+        "message": "; ".join(f"{label} {k}: {r.message}" for k, r in enumerate(results)),
+        "timings": {k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
+        "noise_px": max(r.noise_px for r in results),
+    }
+

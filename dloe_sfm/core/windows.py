@@ -28,7 +28,7 @@ from .options import Options
 from .parallel import map_in_processes, worker_count
 from .pipeline import solve_single
 from .problem import assemble, initialise, parts
-from .result import Result
+from .result import Result, merged_history
 from .robust import apply_swaps
 from .sequencing import affine_time
 
@@ -149,15 +149,9 @@ def stitch(
         D=D,
         events=segment_events(A, capture.stream, capture.frame),
         embedding=t,
-        cost_history=np.concatenate([r.cost_history for r in results]),
-        change_history=np.concatenate([r.change_history for r in results]),
-        nit=sum(r.nit for r in results),
-        success=all(r.success for r in results),
-        message="; ".join(f"window {w}: {r.message}" for w, r in enumerate(results)),
         seconds=seconds,
-        timings={k: sum(r.timings.get(k, 0.0) for r in results) for k in results[0].timings},
         scale=float(np.median([r.scale for r in results])),
-        noise_px=max(r.noise_px for r in results),
+        **merged_history(results, "window"),
         clock=None if np.isnan(clock).all() else clock,
         outliers=np.concatenate(outliers) if outliers else np.zeros((0, 2), dtype=np.int64),
         outlier_residual_px=np.concatenate(residuals) if residuals else np.zeros(0),
