@@ -16,7 +16,6 @@ import logging
 import math
 import os
 import re
-import sys
 import threading
 import time
 import traceback
@@ -26,7 +25,7 @@ from pathlib import Path
 
 from . import __version__, progress
 from .cli import one_line
-from .config import load_options
+from .config import load_options, read_toml
 from .core.assess import assess
 from .core.capture import Capture
 from .core.options import AUTO_WINDOW, Options, shown
@@ -37,11 +36,6 @@ from .errors import InputError
 from .io import atomic_path, check_output
 from .keypoints import FORMATS
 from .observations import PERSON_MODES
-
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -251,21 +245,7 @@ def _manifest_job(table: object, manifest: Path, index: int) -> Job:
 
 def _read_manifest(path: Path) -> list[Job]:
     """The jobs of manifest ``path`` (a TOML file of ``[[job]]`` tables)."""
-    try:
-        with path.open("rb") as f:
-            raw = f.read(MAX_MANIFEST_BYTES + 1)
-    except OSError as e:
-        raise InputError(f"{path}: cannot read the manifest ({e.strerror or e})") from None
-    if len(raw) > MAX_MANIFEST_BYTES:
-        raise InputError(f"{path}: larger than {MAX_MANIFEST_BYTES} bytes, not a batch manifest")
-    try:
-        data = tomllib.loads(raw.decode("utf-8-sig"))
-    except UnicodeDecodeError as e:
-        raise InputError(f"{path}: not UTF-8 text (bad byte at offset {e.start})") from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(f"{path}: invalid TOML ({' '.join(str(e).split())})") from None
-    except RecursionError:
-        raise InputError(f"{path}: invalid TOML (nested too deeply)") from None
+    data = read_toml(path, what="manifest", kind="a batch manifest", limit=MAX_MANIFEST_BYTES)
     unknown = [k for k in data if k != "job"]
     if unknown:
         raise InputError(f"{path}: unknown key {shown(unknown[0])} (a manifest holds [[job]] "

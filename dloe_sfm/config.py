@@ -60,23 +60,24 @@ def _parsed(name: str, text: str) -> object:
     return text
 
 
-def _read_toml(path: Path) -> dict:
-    """The TOML tables of config file ``path``; InputError for anything but a small UTF-8 TOML
-    file."""
+def read_toml(path: Path, *, what: str = "config file", kind: str = "a solver config",
+              limit: int = MAX_CONFIG_BYTES) -> dict:
+    """The TOML tables of ``path`` (a ``what``, e.g. a config file or a batch manifest);
+    InputError for anything but a UTF-8 TOML file of at most ``limit`` bytes."""
     where = _place(path)
     try:
         if not path.exists():
-            raise InputError(f"{where}: no such config file")
+            raise InputError(f"{where}: no such {what}")
         if path.is_dir():
-            raise InputError(f"{where}: is a directory, not a config file")
+            raise InputError(f"{where}: is a directory, not a {what}")
         if not path.is_file():
             raise InputError(f"{where}: not a regular file")
         with path.open("rb") as f:
-            raw = f.read(MAX_CONFIG_BYTES + 1)
+            raw = f.read(limit + 1)
     except OSError as e:
-        raise InputError(f"{where}: cannot read the config file ({e.strerror or e})") from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise InputError(f"{where}: larger than {MAX_CONFIG_BYTES} bytes, not a solver config")
+        raise InputError(f"{where}: cannot read the {what} ({e.strerror or e})") from None
+    if len(raw) > limit:
+        raise InputError(f"{where}: larger than {limit} bytes, not {kind}")
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -92,7 +93,7 @@ def _read_toml(path: Path) -> dict:
 def _config_changes(path: Path) -> dict:
     """The options set by config file ``path``, checked."""
     where = _place(path)
-    data = _read_toml(path)
+    data = read_toml(path)
     if "solver" in data:
         table = data["solver"]
         if not isinstance(table, dict):
