@@ -1,6 +1,6 @@
 """Hand-built scenes and input files shared by the tests (a helper module, not a test file):
 cameras looking at a point, a toy capture with a result, a walking COCO_18 stick figure filmed by a
-synthetic COLMAP workspace, OpenPose files."""
+synthetic COLMAP workspace, OpenPose files; the command line run in-process."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
-from dloe_sfm import Capture, Result, colmap
+from dloe_sfm import Capture, Result, cli, colmap
 from dloe_sfm.core.capture import project
 from dloe_sfm.keypoints import Layout
 from dloe_sfm.keypoints.base import LAYOUTS
@@ -119,3 +119,21 @@ def openpose_file(path: Path, people: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({"version": 1.3, "people": [
         {"person_id": [-1], "pose_keypoints_2d": f, "face_keypoints_2d": []} for f in flat]}))
+
+
+def run_cli(*args, capsys) -> tuple[int, str]:
+    """Exit code and stderr of ``dloe-sfm ARGS``, in this process."""
+    try:
+        code = cli.main([str(a) for a in args])
+    except SystemExit as e:
+        code = e.code
+    return code, capsys.readouterr().err
+
+
+def error_line(stderr: str) -> str:
+    """The one ``dloe-sfm: error:`` line; the message must not continue on another line."""
+    lines = [line for line in re.split(r"[\r\n]", stderr) if line.strip()]
+    errors = [i for i, line in enumerate(lines) if ": error: " in line]
+    assert len(errors) == 1 and errors[0] == len(lines) - 1, stderr
+    return lines[-1]
+

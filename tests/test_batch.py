@@ -5,15 +5,15 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scenes import error_line, run_cli
 
-from dloe_sfm import batch, cli
+from dloe_sfm import batch
 from dloe_sfm.io import MARKER, save_capture
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
@@ -60,21 +60,6 @@ def assert_same_result(got: Path, expected: Path) -> None:
                 np.testing.assert_array_equal(a[key], b[key], err_msg=key, strict=True)
 
 
-def run_cli(args: list[str], capsys) -> tuple[int, str]:
-    """Exit code and stderr of ``dloe-sfm ARGS`` run in this process."""
-    try:
-        code = cli.main([str(a) for a in args])
-    except SystemExit as e:
-        code = e.code
-    return code, capsys.readouterr().err
-
-
-def error_line(stderr: str) -> str:
-    lines = [line for line in re.split(r"[\r\n]", stderr) if ": error: " in line]
-    assert len(lines) == 1, stderr
-    return lines[0]
-
-
 def test_jobs_match_the_serial_solves_and_a_bad_one_is_reported(captures, tmp_path,
                                                                  capsys) -> None:
     files, serial = captures
@@ -82,8 +67,8 @@ def test_jobs_match_the_serial_solves_and_a_bad_one_is_reported(captures, tmp_pa
     bad.write_bytes(b"not a zip file")
     out = tmp_path / "season"
     environ = dict(os.environ)
-    code, err = run_cli(["batch", *files[:2], bad, *files[2:], "--out", out, "--workers", "2",
-                         *(a for s in SETTINGS for a in ("--set", s))], capsys)
+    code, err = run_cli("batch", *files[:2], bad, *files[2:], "--out", out, "--workers", "2",
+                        *(a for s in SETTINGS for a in ("--set", s)), capsys=capsys)
     assert code == 1
     assert f"1 of 5 jobs failed: see {out / 'batch.json'}" in err.splitlines()
     assert dict(os.environ) == environ  # the local cluster's thread settings undone
@@ -183,7 +168,7 @@ def test_a_bad_manifest_is_one_line_and_nothing_runs(captures, tmp_path, capsys,
     manifest = tmp_path / "jobs.toml"
     manifest.write_text(f'[[job]]\ncapture = "take0.npz"\n\n[[job]]\n{table}\n')
     out = tmp_path / "out"
-    code, err = run_cli(["batch", manifest, "--out", out], capsys)
+    code, err = run_cli("batch", manifest, "--out", out, capsys=capsys)
     line = error_line(err)
     assert code == 2 and line.startswith("dloe-sfm: error: ")
     assert str(manifest) in line and field in line
@@ -196,28 +181,28 @@ def test_outputs_and_names_are_checked_first(captures, tmp_path, capsys) -> None
     files, _ = captures
     manifest = tmp_path / "jobs.toml"
     manifest.write_text(f'[[job]]\ncapture = "{files[1]}"\nname = "{files[0].stem}"\n')
-    code, err = run_cli(["batch", files[0], manifest, "--out", tmp_path / "o"], capsys)
+    code, err = run_cli("batch", files[0], manifest, "--out", tmp_path / "o", capsys=capsys)
     assert code == 2 and f"a second job named '{files[0].stem}'" in error_line(err)
     occupied = tmp_path / "occupied"
     occupied.mkdir()
     (occupied / "notes.txt").write_text("mine")
-    code, err = run_cli(["batch", files[0], "--out", occupied], capsys)
+    code, err = run_cli("batch", files[0], "--out", occupied, capsys=capsys)
     assert code == 2 and "exists (use --overwrite" in error_line(err)
-    code, err = run_cli(["batch", files[0], "--out", occupied, "--overwrite"], capsys)
+    code, err = run_cli("batch", files[0], "--out", occupied, "--overwrite", capsys=capsys)
     assert code == 2 and "not written by dloe-sfm" in error_line(err)
     (occupied / MARKER).write_text("dloe-sfm\n")  # e.g. a reconstruct output: not a batch's
-    code, err = run_cli(["batch", files[0], "--out", occupied, "--overwrite"], capsys)
+    code, err = run_cli("batch", files[0], "--out", occupied, "--overwrite", capsys=capsys)
     assert code == 2 and "not written by dloe-sfm batch" in error_line(err)
     assert (occupied / "notes.txt").read_text() == "mine"
-    code, err = run_cli(["batch", files[0], "--out", files[0].parent / "x", "--set", "bad"],
-                        capsys)
+    code, err = run_cli("batch", files[0], "--out", files[0].parent / "x", "--set", "bad",
+                        capsys=capsys)
     assert code == 2 and "--set bad" in error_line(err)
-    code, err = run_cli(["batch", files[0], "--out", tmp_path / "x", "--workers", "2",
-                         "--scheduler", "tcp://127.0.0.1:1"], capsys)
+    code, err = run_cli("batch", files[0], "--out", tmp_path / "x", "--workers", "2",
+                        "--scheduler", "tcp://127.0.0.1:1", capsys=capsys)
     assert code == 2 and "--workers" in error_line(err)
-    code, err = run_cli(["batch", files[0].parent, "--out", tmp_path / "x"], capsys)
+    code, err = run_cli("batch", files[0].parent, "--out", tmp_path / "x", capsys=capsys)
     assert code == 2 and "is a folder" in error_line(err)
-    code, err = run_cli(["batch", files[0], "--out", files[0].parent], capsys)
+    code, err = run_cli("batch", files[0], "--out", files[0].parent, capsys=capsys)
     assert code == 2 and "the output contains the input file" in error_line(err)
     assert not (tmp_path / "x").exists() and not (files[0].parent / "x").exists()
 

@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scenes import toy_capture
+from scenes import error_line, toy_capture
+from scenes import run_cli as run
 
-from dloe_sfm import cli
 from dloe_sfm.io import MARKER, save_capture
 
 FAST = ["--set", "max_iterations=2", "--set", "robust_iterations=0"]  # the solve is not tested
@@ -41,23 +41,6 @@ def snapshot(root: Path) -> dict[str, str | None]:
     return {p.relative_to(root).as_posix():
             hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else None
             for p in sorted(root.rglob("*"))}
-
-
-def run(*args, capsys) -> tuple[int, str]:
-    """Exit code and stderr of ``dloe-sfm ARGS``, in this process."""
-    try:
-        code = cli.main([str(a) for a in args])
-    except SystemExit as e:
-        code = e.code
-    return code, capsys.readouterr().err
-
-
-def error_line(stderr: str) -> str:
-    """The one ``dloe-sfm: error:`` line; the message must not continue on another line."""
-    lines = [line for line in re.split(r"[\r\n]", stderr) if line.strip()]
-    errors = [i for i, line in enumerate(lines) if ": error: " in line]
-    assert len(errors) == 1 and errors[0] == len(lines) - 1, stderr
-    return lines[-1]
 
 
 def reconstruct(ws: Path, out: Path | str, *extra, plots: bool = False) -> list:
