@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 import time
 from pathlib import Path
@@ -22,7 +21,7 @@ from ..io import check_output
 from ..keypoints import FORMATS, Layout, load_layout, read_keypoints
 from ..observations import PERSON_MODES, build_capture, observed_layout
 from ..resources import check_solve_memory
-from .sync import add_fps_option, parse_fps
+from .sync import add_fps_option, parse_fps, positive_rate
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -45,12 +44,9 @@ def _person(value: str) -> str | int:
 def _positive_rate(value: str) -> float:
     """``--export-rate``: a positive finite number."""
     try:
-        rate = float(value)
-    except ValueError:
-        rate = math.nan
-    if not (math.isfinite(rate) and rate > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {value!r}")
-    return rate
+        return positive_rate(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,

@@ -26,12 +26,9 @@ def parse_fps(values: list[str] | None) -> Fps:
 
     def rate(text: str) -> float:
         try:
-            value = float(text)
-        except ValueError:
-            value = math.nan
-        if not (math.isfinite(value) and value > 0):
-            raise InputError(f"option --fps: must be a positive number, got {text!r}")
-        return value
+            return positive_rate(text)
+        except ValueError as e:
+            raise InputError(f"option --fps: {e}") from None
 
     if len(values) == 1 and "=" not in values[0]:
         return rate(values[0])
@@ -49,6 +46,18 @@ def parse_fps(values: list[str] | None) -> Fps:
             raise InputError(f"option --fps: stream {key} given twice")
         out[key] = rate(value)
     return out
+
+
+def positive_rate(text: str) -> float:
+    """A frame or sample rate given on the command line: a positive finite number (ValueError
+    "must be a positive number, got ..." otherwise)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"must be a positive number, got {text!r}")
+    return value
 
 
 def add_fps_option(parser: argparse.ArgumentParser) -> None:
