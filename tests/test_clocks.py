@@ -7,12 +7,14 @@ from dloe_sfm.core.clocks import (
     _cubic_bspline,
     _rays,
     _SplineFit,
+    clocks_hold,
     fit_clocks,
     ray_equations,
     spline_residuals,
     time_chain,
 )
 from dloe_sfm.core.options import Clocks, Options
+from dloe_sfm.core.pipeline import clocks_predict
 from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
@@ -128,12 +130,29 @@ def test_stream_clocks_meet_the_sparse_target(sparse_walk):
     assert kendall_tau(r.order, truth.t) == pytest.approx(1.0)
 
 
-def test_stream_clocks_default_follows_the_ray_weight():
-    """``auto``: on with hard rays only; true / false spellings map to on / off."""
-    assert Options().clocks_on and not Options(noise_px=2.0).clocks_on
-    assert not Options(lambda2=1e3).clocks_on
-    assert Options(noise_px=2.0, stream_clocks=True).clocks_on
+def test_stream_clocks_spellings():
+    """``auto`` by default; true / false spellings map to on / off."""
+    assert Options().stream_clocks is Clocks.AUTO
+    assert Options(stream_clocks=True).stream_clocks is Clocks.ON
     assert Options(stream_clocks="false").stream_clocks is Clocks.OFF
+
+
+def test_held_out_check_keeps_clocks_that_predict_at_least_as_well():
+    graph = np.array([2.0, 3.0, 4.0, np.nan])
+    assert clocks_hold(graph, graph) and clocks_hold(graph, graph * 0.9)
+    assert not clocks_hold(graph, graph * 1.05)
+
+
+def test_held_out_images_keep_true_clocks_and_drop_a_shifted_one(sparse_walk):
+    """``pipeline.clocks_predict`` on the sparse capture solved by the graph alone: the true times
+    predict the held-out images better than the graph; one stream's clock moved by a whole
+    frame (133 ms) predicts them worse, and the graph is kept."""
+    cap, truth = sparse_walk
+    options = Options(stream_clocks="off", noise_px=0.0)
+    r = reconstruct(cap, options)
+    assert clocks_predict(cap, options, r.X, r.D, truth.t)
+    shifted = truth.t + np.where(cap.stream == cap.stream[0], 1 / 7.5, 0.0)
+    assert not clocks_predict(cap, options, r.X, r.D, shifted)
 
 
 def test_spline_times_before_the_first_knot_are_refused(rng):

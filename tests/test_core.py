@@ -8,13 +8,11 @@ from scipy.optimize import minimize
 
 from dloe_sfm.core import steps
 from dloe_sfm.core.capture import Capture, project
-from dloe_sfm.core.dtw import align, monotone_assignment
 from dloe_sfm.core.init import pseudo_triangulate
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.problem import build_problem
 from dloe_sfm.core.sequencing import (
     arc_distance,
-    dtw_positions,
     euclidean_distance,
     kendall_tau,
     line_embedding,
@@ -239,72 +237,6 @@ def test_pseudo_triangulation_handles_missing_and_parallel(rng):
     assert ok.sum() == 19 and np.abs(Xh[ok] - np.repeat(pts[None], 4, axis=0)[ok]).max() < 1e-9
 
 
-def test_monotone_assignment_respects_order(rng):
-    cost = rng.random((30, 20))
-    path = monotone_assignment(cost)
-    assert (np.diff(path) >= 0).all()
-    # brute-force check of optimality on a tiny instance
-    small = rng.random((4, 3))
-    best = min(
-        (sum(small[i, c[i]] for i in range(4)), c)
-        for c in np.array(np.meshgrid(*[range(3)] * 4)).reshape(4, -1).T
-        if (np.diff(c) >= 0).all()
-    )
-    p = monotone_assignment(small)
-    assert abs(small[np.arange(4), p].sum() - best[0]) < 1e-12
-
-
-def test_align_coarse_to_fine_matches_the_whole_table(rng):
-    # two samplings of one curve at different rates and offsets: the coarse-to-fine alignment
-    # (tables of at most 64 entries) finds the exact DTW path of the whole table
-    def curve(u):
-        return np.stack([np.cos(5 * u), np.sin(3 * u), u], axis=1)
-
-    A = curve(np.sort(rng.uniform(0.05, 0.95, 300)))
-    B = curve(np.linspace(0, 1, 170))
-    d = np.linalg.norm(A[:, None] - B[None], axis=2)
-
-    def cost(i, j):
-        return d[i, j]
-
-    exact = monotone_assignment(d)
-    assert np.array_equal(align(cost, 300, 170, full_table=64), exact)
-    assert np.array_equal(align(cost, 300, 170, full_table=300 * 170), exact)  # whole table
-    # a non-finite cost is taken only where nothing else is
-    d[:, 10] = np.inf
-    assert not (align(cost, 300, 170, full_table=64) == 10).any()
-
-
-def test_dtw_positions_long_streams_in_a_band():
-    s = np.linspace(0, 1, 400)
-
-    def curve(u):
-        return np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
-
-    B = curve(s)
-    A = curve(np.linspace(0.001, 0.999, 700))  # 700 x 399 > dtw.FULL_TABLE: coarse to fine
-    pos = dtw_positions(A, B)
-    arc_b = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(B, axis=0), axis=1))])
-    true = np.interp(np.linspace(0.001, 0.999, 700), s, arc_b)
-    assert (np.diff(pos) >= 0).all()
-    assert np.abs(pos - true).max() < 1e-4 * arc_b[-1]
-
-
-def test_dtw_positions_on_a_shared_curve():
-    s = np.linspace(0, 1, 40)
-
-    def curve(u):
-        return np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
-
-    B = curve(s)
-    A = curve(s[:-1] + 0.5 / 39)  # interleaved samples of the same curve
-    pos = dtw_positions(A, B)
-    assert (np.diff(pos) > 0).all()
-    arc_b = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(B, axis=0), axis=1))])
-    mid = 0.5 * (arc_b[:-1] + arc_b[1:])
-    assert np.abs(pos - mid).max() < 1e-3
-
-
 @pytest.mark.parametrize("embedding", ["mds", "spectral", "shp"])
 def test_embeddings_order_a_known_chain(rng, embedding):
     t = np.sort(rng.random(60)) * 1.5  # a gently bending helix: every embedding must order it
@@ -441,7 +373,11 @@ def test_disjoint_events_are_segmented_and_solved_apart(assets_dir):
     truth = np.r_[np.zeros(ia.size, int), np.ones(ib.size, int)]
     r = reconstruct(cap, Options())
     assert r.events.max() == 1
-    assert np.isfinite(r.clock).all()  # each event on its own two streams' clocks
+    # each event on its own streams' clocks, or wholly on DLOE's graph where the held-out
+    # images said so (here jumping: graph 0.20 mm, its clocks 0.29)
+    clocked = np.isfinite(r.clock)
+    assert clocked.any() and all(clocked[r.events == e].all() or not clocked[r.events == e].any()
+                                 for e in (0, 1))
     assert (r.events == truth).all() or (r.events != truth).all()
     coo = r.A.tocoo()
     assert (r.events[coo.row] == r.events[coo.col]).all()  # no edge between events

@@ -6,14 +6,22 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
 
 from .capture import Capture
+from .clocks import time_chain
 from .events import segment_events
-from .noise import estimate_noise_px
+from .noise import (
+    CHECK_IMAGES,
+    FOLD_SWEEPS,
+    estimate_noise_px,
+    image_folds,
+    observation_folds,
+    soft_wins,
+)
 from .options import AUTO, Distance, Embedding, Options
 from .problem import Normalised, initialise, normalise
 from .result import Result
@@ -210,7 +218,8 @@ def solve_event(
     progress: Progress | None = None,
 ) -> Result:
     """One event: init (unless given), alternation (hard rays, then soft ones with a finite ray
-    weight; ``noise_px`` = ``auto`` is estimated from the hard-ray solution), sequencing.
+    weight; with ``noise_px`` = ``auto`` at the level estimated from the hard-ray solution, kept
+    only if they predict held-out detections better: :func:`soft_checks_out`), sequencing.
     Returns a :class:`Result` in world units."""
     t_start = time.perf_counter()
     if X_world is None:
@@ -232,10 +241,10 @@ def solve_event(
     # settle W first; the soft phase then only refines
     success, message = alternate(st, prob, capture.frame, options,
                                  Phase(np.inf, options.max_iterations))
+    hard, hard_outcome, hard_sweeps = st.best, (success, message), len(st.costs)
     if auto:
-        X_pred = predicted(st.best.W, norm.to_world(st.best.X))
+        X_pred = predicted(hard.W, norm.to_world(hard.X))
         options = options.replace(noise_px=estimate_noise_px(residuals_px(capture, X_pred)))
-        logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
     lambda2 = soft_ray_weight(capture, options)
     if np.isfinite(lambda2):
         st.X = st.best.X.copy()
@@ -243,6 +252,13 @@ def solve_event(
             st, prob, capture.frame, options,
             Phase(lambda2, options.soft_iterations, discrepancy(capture, options, norm)),
         )
+        if auto and not soft_checks_out(capture, options, norm, hard, st):
+            # the hard-ray solve stands, with its own history
+            st.best, (success, message) = hard, hard_outcome
+            del st.costs[hard_sweeps:], st.changes[hard_sweeps:]
+            options = options.replace(noise_px=0.0)
+    if auto:
+        logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
     if progress is not None and len(st.costs) < st.total:
         progress(st.total, st.total, {"cost": st.costs[-1], "change": st.changes[-1]})
     best = st.best
@@ -268,6 +284,84 @@ def solve_event(
         scale=norm.scale,
         noise_px=float(options.noise_px),
     )
+
+
+def soft_checks_out(
+    capture: Capture, options: Options, norm: Normalised, hard: Best, st: Search
+) -> bool:
+    """Whether the soft-ray solution ``st.best`` (at ``options.noise_px``, the estimate of
+    ``auto``) predicts held-out detections better than the hard-ray one ``hard``
+    (``noise.soft_wins``; observation folds, each model's folds started from its own solution,
+    on at most ``noise.CHECK_IMAGES`` images in the middle of the time line), logged."""
+    window = middle_images(st.f)
+    sub = capture.subset(window) if window.size < capture.num_images else capture
+    hard_px = held_out_px(sub, options.replace(noise_px=0.0), norm.to_world(hard.X)[window],
+                          hard.D[window], np.inf)
+    soft_px = held_out_px(sub, options, norm.to_world(st.best.X)[window], st.best.D[window],
+                          soft_ray_weight(capture, options))
+    wins = soft_wins(hard_px, soft_px)
+    logger.info("held-out detections, median residual: hard rays %.2f px, soft rays at %.2f px "
+                "noise %.2f px: %s", np.nanmedian(hard_px), options.noise_px,
+                np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
+    return wins
+
+
+def middle_images(f: np.ndarray, size: int = CHECK_IMAGES) -> np.ndarray:
+    """Sorted indices of the (at most) ``size`` images in the middle of the time line ``f``."""
+    order = np.argsort(f, kind="stable")
+    lo = max(0, (f.size - size) // 2)
+    return np.sort(order[lo:lo + size])
+
+
+def held_out_px(
+    capture: Capture,
+    options: Options,
+    X_world: np.ndarray,
+    D: np.ndarray,
+    lambda2: float,
+    *,
+    times: np.ndarray | None = None,
+    images: bool = False,
+) -> np.ndarray:
+    """Pixel residuals of held-out detections predicted without them (NaN behind the camera).
+
+    Each fold is left out in turn and the rest solved from ``X_world`` (world units) at ray
+    weight ``lambda2``: by DLOE's graph (``noise.FOLD_SWEEPS`` sweeps of the alternation from
+    degrees ``D``), or with ``times`` by the X-step on the chain along those times
+    (``clocks.time_chain``, as the clocks place the points). The folds are observations
+    (``noise.observation_folds``: the image's other points fix when it was taken, so the
+    check is on the detections' noise), or with ``images`` whole images
+    (``noise.image_folds``, started from their stream neighbours' mean: the check is on
+    when each image was taken)."""
+    norm = normalise(capture, options, X_world)
+    prob = norm.problem
+    X = norm.to_normal(X_world)
+    if times is None:
+        prior_f, f = sequence(X, prob, capture.frame, options)
+    else:
+        W, D_chain = time_chain(times)
+    if images:
+        fold = np.repeat(image_folds(prob.streams, capture.frame)[:, None], X.shape[1], axis=1)
+        fold[~prob.visible] = -1
+        chained = (prob.chain @ X.reshape(X.shape[0], -1)).reshape(X.shape)
+    else:
+        fold = observation_folds(prob.visible)
+    out = np.full(fold.shape, np.nan)
+    for k in range(int(fold.max()) + 1):
+        held = fold == k
+        pk = replace(prob, weights=np.where(held, 0.0, prob.weights),
+                     rays=np.where(held[..., None], np.nan, prob.rays))
+        start = X
+        if images:
+            start = np.where(held.any(axis=1)[:, None, None], chained, X)
+        if times is None:
+            sk = Search(X=start.copy(), D=D.copy(), prior_f=prior_f, f=f, total=FOLD_SWEEPS)
+            alternate(sk, pk, capture.frame, options, Phase(lambda2, FOLD_SWEEPS))
+            Xk = sk.best.X
+        else:
+            Xk = x_step(W, D_chain, pk, lambda1=0.0, lambda2=lambda2, X_prev=start)
+        out[held] = residuals_px(capture, norm.to_world(Xk))[held]
+    return out[fold >= 0]
 
 
 def soft_ray_weight(capture: Capture, options: Options) -> float:

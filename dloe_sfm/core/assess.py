@@ -22,7 +22,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from .capture import Capture
 from .result import Result
 from .robust import predicted, residuals_px
-from .steps import smoothness_matrix
+from .steps import smoothness_matrix, temporal_ends
 
 Z_FLAG = 6.0
 """Robust z-score (against median / 1.4826 MAD over images) beyond which a statistic flags."""
@@ -234,13 +234,16 @@ def assess(capture: Capture, result: Result, *, lambda1: float) -> Result:
     pred_scale = float(np.nanmedian(pred[observed])) if np.isfinite(pred[observed]).any() else 0
     bad_residual = outlying(residual, robust_stats(residual, pred_scale), residual)
 
-    step = typical_step(X, result.W)
+    # the time line's ends can only extrapolate (by up to about a step): measured in steps twice
+    # as long; the spread at least half a step (docs/method.md, "Per-image status and
+    # reconstructability")
+    step = typical_step(X, result.W) * np.where(temporal_ends(result.embedding, cap.stream_ids),
+                                                2.0, 1.0)
     W = sp.csr_matrix(result.W)
     by_column = sp.csc_matrix(W)
     bad_neighbour = np.zeros(n, dtype=bool)
     deviation = neighbour_deviation(X, W, observed, bad_neighbour, np.arange(n)) / step
-    # spread at least one step: the clip's ends extrapolate by about one
-    stats = robust_stats(deviation, 1.0)
+    stats = robust_stats(deviation, 0.5)
     while True:
         # flag the worst image, then re-predict the images it predicts without it
         fresh = outlying(deviation, stats, deviation) & ~bad_neighbour
@@ -249,7 +252,7 @@ def assess(capture: Capture, result: Result, *, lambda1: float) -> Result:
         worst = np.flatnonzero(fresh)[np.argmax(deviation[fresh])]
         bad_neighbour[worst] = True
         rows = by_column.indices[by_column.indptr[worst] : by_column.indptr[worst + 1]]
-        deviation[rows] = neighbour_deviation(X, W, observed, bad_neighbour, rows) / step
+        deviation[rows] = neighbour_deviation(X, W, observed, bad_neighbour, rows) / step[rows]
 
     Q = smoothness_matrix(result.W, result.D, lambda1)
     Xf = X.reshape(n, -1)

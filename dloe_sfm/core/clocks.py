@@ -44,6 +44,12 @@ GRID_IMAGES = 2000
 """...and the middle this many images in the first-guess time order (all of them in the fit)."""
 
 
+def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether the clocks predict held-out images' detections (pixels, NaN ignored) at least as
+    well as DLOE's graph (median residual; ``alternation.held_out_px``)."""
+    return bool(np.nanmedian(clock_px) <= np.nanmedian(graph_px))
+
+
 def ray_equations(
     rays: np.ndarray, C: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from .dtw import align
+from .dtw import align_many, in_blocks
 
 
 def closest_approach(
@@ -133,7 +133,7 @@ def _candidates(
     image of another stream for the rest (lone photos, or all images without ``frames``)."""
     from .sequencing import stream_members
 
-    n = streams.size
+    n, p = pairs.vis.shape
     members = [] if frames is None else [m for m in stream_members(streams, frames)
                                          if m.size >= 2]
     aligned = np.zeros(n, dtype=bool)
@@ -145,12 +145,16 @@ def _candidates(
         rows = rest[lo:lo + chunk]
         r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
         yield rows[r], everyone[c]
+    paths = iter(align_many([
+        (in_blocks(lambda i, j, a=a, b=b: pairs.score(a[i], b[j]), 3 * p), a.size, b.size)
+        for a in members for b in members if b is not a
+    ]))
     for a in members:
         rows, cols = [], []
         for b in members:
             if b is a:
                 continue
-            path = align(lambda i, j, a=a, b=b: pairs.score(a[i], b[j]), a.size, b.size)
+            path = next(paths)
             near = np.clip(path[:, None] + np.arange(-1, 2)[None, :], 0, b.size - 1)
             keep = np.r_[near[:, 0] < near[:, 1], [True] * a.size, near[:, 2] > near[:, 1]]
             rows.append(np.tile(a, 3)[keep])

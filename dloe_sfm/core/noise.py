@@ -1,13 +1,15 @@
-"""The detection noise estimated from the data: what the hard-ray graph cannot predict.
+"""The detection noise estimated from the data, and the folds of the held-out checks
+(docs/method.md, "Held-out checks").
 
 Every observation's residual against the graph's prediction from the other images (``W X``,
-``robust.residuals_px``) holds the detection's noise and the graph's own interpolation error.
-Noise is the same for every point; interpolation error is not (fast, accelerating joints are
-predicted worse, slow ones almost exactly). So the noise is the residual level that nearly
-every point shares, and it is taken as the detections' noise only where it explains the
-residuals of almost every point; otherwise the model, not the detections, is what is off and
-the detections are taken as exact (``noise_px`` 0: hard rays).
-"""
+``robust.residuals_px``) holds the detection's noise and the graph's own interpolation error,
+so its level is only a candidate: exact detections of fast, accelerating joints leave
+residuals too, and soft rays at their level would pull points off accurate detections. Which
+ray model is right is asked of the data: the observations are split into folds, each fold is
+solved without its detections under both models (each from its own solution), and the model
+that predicts the held-out detections better wins (``alternation.soft_checks_out``). Whole
+images held out (``image_folds``) ask the other question, when each image was taken: the
+stream clocks' check (``pipeline.clocks_predict``)."""
 
 from __future__ import annotations
 
@@ -20,26 +22,63 @@ FIT_RATIO = 0.75
 """Median residual over the noise's median radius: W, fitted to the noisy hard-ray shapes, predicts
 the observations closer than their noise (0.72-0.86 on mocap at 1-5 px, lower at more noise)."""
 
-SHARED = 0.9
-"""The residual level that three quarters of the points exceed must be at least this fraction of
-the median residual for the residuals to count as noise (mocap with noise: 0.93-0.97; noise-free,
-sparse and the demo: 0.72-0.82)."""
-
 MIN_OBSERVATIONS = 5
 """A point's median residual counts with at least this many observations."""
 
+FOLDS = 3
+"""Folds of the held-out checks."""
+
+FOLD_SWEEPS = 5
+"""Sweeps of each fold's solve by DLOE's graph, started from the model's solution."""
+
+CHECK_IMAGES = 1000
+"""Images (the middle of the time line) the held-out checks solve: a choice of model, which a
+stretch of the capture answers as well as all of it."""
+
+MARGIN = 0.95
+"""Soft rays are taken when their median held-out residual is below this fraction of hard
+rays' (a tie keeps the detections exact)."""
+
 
 def estimate_noise_px(res: np.ndarray) -> float:
-    """Std (pixels) of the detection noise from the (N, P) residuals ``res`` (NaN: unobserved) of
-    the hard-ray solution; 0 when the residuals are not noise that every point shares, or when
-    fewer than four points have ``MIN_OBSERVATIONS`` residuals."""
+    """Std (pixels) of 2D Gaussian noise whose median radius explains the median of the (N, P)
+    residuals ``res`` (NaN: unobserved) of the hard-ray solution; 0 when fewer than four points
+    have ``MIN_OBSERVATIONS`` residuals. A candidate for :func:`soft_wins` to confirm."""
     seen = np.isfinite(res)
-    counted = seen.sum(axis=0) >= MIN_OBSERVATIONS
-    if counted.sum() < 4:
+    if (seen.sum(axis=0) >= MIN_OBSERVATIONS).sum() < 4:
         return 0.0
-    per_point = np.nanmedian(res[:, counted], axis=0)
-    floor = float(np.percentile(per_point, 25))
     median = float(np.median(res[seen]))
-    if not median > 0 or floor < SHARED * median:
-        return 0.0
-    return median / (FIT_RATIO * MEDIAN_RADIUS)
+    return median / (FIT_RATIO * MEDIAN_RADIUS) if median > 0 else 0.0
+
+
+def residual_floor_px(noise_px: float) -> float:
+    """The median residual against the graph's prediction that detection noise of std
+    ``noise_px`` leaves on its own (pixels): what no re-solve can remove."""
+    return FIT_RATIO * MEDIAN_RADIUS * noise_px
+
+
+def observation_folds(visible: np.ndarray, count: int = FOLDS) -> np.ndarray:
+    """(N, P) fold of every visible observation in 0 .. count - 1 (-1 where not visible), drawn
+    from a fixed seed: the same capture always gets the same folds."""
+    rng = np.random.default_rng(0)
+    return np.where(visible, rng.integers(0, count, visible.shape), -1)
+
+
+def image_folds(streams: np.ndarray, frames: np.ndarray, count: int = FOLDS) -> np.ndarray:
+    """(N,) fold in 0 .. count - 1 of every image held out whole: the images inside a stream of
+    three or more, in turn along it (a held-out image's neighbours in its stream stay in); -1
+    for the rest (a stream's ends and lone photos: nothing places them without their
+    detections)."""
+    fold = np.full(streams.size, -1)
+    for s in np.unique(streams):
+        idx = np.flatnonzero(streams == s)
+        if idx.size >= 3:
+            inner = idx[np.argsort(frames[idx], kind="stable")][1:-1]
+            fold[inner] = np.arange(inner.size) % count
+    return fold
+
+
+def soft_wins(hard_px: np.ndarray, soft_px: np.ndarray) -> bool:
+    """Whether soft rays predicted the held-out detections better: median residual below
+    ``MARGIN`` times hard rays' (both (M,) pixels over the same observations, NaN ignored)."""
+    return bool(np.nanmedian(soft_px) < MARGIN * np.nanmedian(hard_px))

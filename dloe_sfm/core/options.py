@@ -39,7 +39,7 @@ class RobustLoss(str, Enum):
 class Clocks(str, Enum):
     """When the images are placed on the streams' fitted clocks (``Options.stream_clocks``)."""
 
-    AUTO = "auto"  # with hard rays: noise_px = 0 and no lambda2
+    AUTO = "auto"  # fitted, kept where they predict held-out detections (pipeline.clocks_predict)
     ON = "on"
     OFF = "off"
 
@@ -289,9 +289,10 @@ class Options:
     stream_clocks: Clocks = Clocks.AUTO
     """Every event filmed by videos (two or more streams of three or more frames) is finally
     placed on its streams' fitted affine clocks (``core.clocks``): the points by the X-step on
-    the chain along the clocks, the order from them. ``auto``: with hard rays (``noise_px`` = 0,
-    no ``lambda2``): there the motion alone pins the clocks, while with noisy rays slow motion
-    leaves them off and DLOE's graph does better (docs/method.md, "Stream clocks").
+    the chain along the clocks, the order from them. ``auto``: fitted for every such event and
+    kept where they predict held-out images' detections at least as well as DLOE's graph
+    (``pipeline.clocks_predict``): few frames per stream, or slow motion under noise, leave the
+    clocks unpinned and the graph does better (docs/method.md, "Held-out checks").
     ``on`` / ``off``: always / never (``off``: the paper's method)."""
     shared_rate: bool = False
     """With ``stream_clocks``: all streams run at one frame rate (True); else each stream's rate
@@ -344,14 +345,6 @@ class Options:
         """Every assignment, the constructor's included, is checked against ``RULES`` (InputError,
         a ValueError, naming the option and its allowed values) and stored normalised."""
         super().__setattr__(name, check_option(name, value))
-
-    @property
-    def clocks_on(self) -> bool:
-        """Whether stream clocks are fitted (``stream_clocks``: ``on``, or ``auto`` with hard
-        rays; the solver asks it with ``noise_px`` = ``auto`` replaced by its estimate)."""
-        if self.stream_clocks is Clocks.AUTO:
-            return self.ray_weight(1.0) == float("inf")
-        return self.stream_clocks is Clocks.ON
 
     def replace(self, **changes) -> Options:
         """A copy with some options changed (unknown names and bad values raise InputError)."""

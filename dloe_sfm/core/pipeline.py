@@ -10,11 +10,12 @@ from dataclasses import replace
 import numpy as np
 import scipy.sparse as sp
 
-from .alternation import Progress, soft_ray_weight, solve_event
+from .alternation import Progress, held_out_px, middle_images, soft_ray_weight, solve_event
 from .capture import Capture
-from .clocks import fit_clocks, ray_equations, time_chain
+from .clocks import clocks_hold, fit_clocks, ray_equations, time_chain
 from .events import segment_events
-from .options import AUTO, Options, RobustLoss
+from .noise import residual_floor_px
+from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
 from .result import Result, merged_history
@@ -42,10 +43,10 @@ def solve_single(
     With ``options.segment_events``, temporally disjoint events are found first
     (:func:`initial_events`) and each event is sequenced and reconstructed on its own. With a
     robust loss (or symmetric pairs to check) the observations are then reweighted from the
-    solution's residuals and the capture re-solved (:func:`robust_rounds`). With stream clocks
-    (``options.clocks_on``, asked with the estimated noise when ``noise_px`` is ``auto``) every
-    event filmed by videos is finally placed on its streams' fitted clocks (:func:`clocked`).
-    """
+    solution's residuals and the capture re-solved (:func:`robust_rounds`). Unless
+    ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
+    streams' fitted clocks (:func:`clocked`; with ``auto`` only where they predict held-out
+    detections at least as well as the graph, :func:`clocks_predict`)."""
     started = time.perf_counter()
     X_world = initialise(capture, options)
     labels = np.zeros(capture.num_images, dtype=np.int64)
@@ -56,7 +57,7 @@ def solve_single(
     result, solved = robust_rounds(capture, options, labels, result, progress)
     if options.noise_px == AUTO:
         options = options.replace(noise_px=result.noise_px)
-    if options.clocks_on:
+    if options.stream_clocks is not Clocks.OFF:
         result = clocked(solved, options, result)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
     return replace(result, timings=timings, seconds=time.perf_counter() - started)
@@ -167,10 +168,11 @@ def robust_rounds(
     (pixels), drops those weighted below 1/2 and re-solves from a fresh initialisation (one
     from shapes bent by the outliers stays bent). The first re-solve is kept only if it
     predicts the observations it used at least 5 % better (median residual) than the plain
-    solve: real outliers bend the graph, so removing them tightens the fit, while at coarse
-    sampling the largest residuals are the graph's own interpolation errors and dropping them
-    helps nothing (docs/method.md, "Wrong detections (robust rounds)"). Stops when no pair was
-    swapped and the rejected set changed by at most 0.1 % of the observations.
+    solve, beyond what the detection noise leaves (``noise.residual_floor_px``): real outliers
+    bend the graph, so removing them tightens the fit, while at coarse sampling the largest
+    residuals are the graph's own interpolation errors and dropping them helps nothing
+    (docs/method.md, "Wrong detections (robust rounds)"). Stops when no pair was swapped and the
+    rejected set changed by at most 0.1 % of the observations.
     Returns ``result`` re-solved, with ``outliers`` the observations the final solve left out
     and ``swaps`` every exchange kept, and the capture it was solved on (swaps undone,
     observations reweighted).
@@ -183,12 +185,14 @@ def robust_rounds(
     solved = capture
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
     plain, expected = result, None
+    floor = residual_floor_px(result.noise_px)
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
-        if it == 1 and (fit := float(np.nanmedian(res[~rejected]))) > 0.95 * expected:
+        fit = float(np.nanmedian(res[~rejected]))
+        if it == 1 and fit - floor > 0.95 * (expected - floor):
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
-                        "%.2f -> %.2f px)", expected, fit)
+                        "%.2f -> %.2f px, %.2f px of it noise)", expected, fit, floor)
             result, current, swaps, solved = plain, capture, swaps[:0], capture
             rejected = np.zeros_like(rejected)
             break
@@ -228,13 +232,34 @@ def robust_rounds(
     ), solved
 
 
+def clocks_predict(
+    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray
+) -> bool:
+    """Whether one event's clocks ``t`` predict held-out images' detections at least as well as
+    DLOE's graph (``clocks.clocks_hold``; ``alternation.held_out_px`` on at most
+    ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either way."""
+    window = middle_images(t)
+    sub = capture.subset(window) if window.size < capture.num_images else capture
+    lambda2 = soft_ray_weight(capture, options)
+    graph = held_out_px(sub, options, X_world[window], D[window], lambda2, images=True)
+    clock = held_out_px(sub, options, X_world[window], D[window], lambda2, times=t[window],
+                        images=True)
+    keep = clocks_hold(graph, clock)
+    logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
+                "px: %s", np.nanmedian(graph), np.nanmedian(clock),
+                "clocks kept" if keep else "the clocks fail, DLOE's graph is kept")
+    return keep
+
+
 def clocked(capture: Capture, options: Options, result: Result) -> Result:
     """``result`` with every event that is filmed by videos (two or more streams of three or
     more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
     the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
     W and D rows that chain's, its block of the order and its embedding (span kept) from the
     clocks. ``capture`` is the one the result was solved on (:func:`robust_rounds`); an event
-    whose clocks the rays do not pin keeps DLOE's graph. ``clock`` holds the times.
+    whose clocks the rays do not pin keeps DLOE's graph, and with ``stream_clocks`` ``auto`` so
+    does one whose clocks predict held-out images worse than the graph
+    (:func:`clocks_predict`). ``clock`` holds the times.
     """
     t_start = time.perf_counter()
     n = capture.num_images
@@ -258,6 +283,9 @@ def clocked(capture: Capture, options: Options, result: Result) -> Result:
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by more "
                         "than a frame period); DLOE's graph is kept", e)
+            continue
+        auto = options.stream_clocks is Clocks.AUTO
+        if auto and not clocks_predict(sub, options, X[idx], D[idx], t):
             continue
         # the chain's weights come from the time line: no compactness term (as the oracle)
         W, D[idx] = time_chain(t)

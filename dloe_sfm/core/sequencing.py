@@ -6,6 +6,7 @@ Shapes: N images, P points, X (N, P, 3); streams / frames (N,) int.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,7 +15,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.stats import kendalltau, theilslopes
 
-from .dtw import FULL_TABLE, align, monotone_assignment
+from .dtw import FULL_TABLE, CostFn, align_many, in_blocks
 from .options import Distance, Embedding
 
 THEIL_SEN_POINTS = 256
@@ -41,16 +42,28 @@ def arc_length(F: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(F, axis=0), axis=1))])
 
 
-def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Arc-length position on polyline B of every row of A, assigned in order.
+def dtw_positions(pairs: Sequence[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    """Arc-length position on polyline B of every row of A, assigned in order, for every pair.
 
     A (m, d) a stream's shapes in frame order, B (q, d) with q >= 2 another stream's polyline.
     Each row of A is assigned to one segment of B, the segment index never decreasing along A
     (dynamic time warping with point-to-segment costs), and placed at the foot of its
     perpendicular on that segment. Tables of up to ``dtw.FULL_TABLE`` entries are aligned whole
-    (from matrix products); longer streams coarse to fine (``dtw.align``), in linear time.
-    Returns (m,) positions in B's arc length.
+    (from matrix products); longer streams coarse to fine, in linear time; all pairs together
+    (``dtw.align_many``). Returns (m,) positions in B's arc length for every pair.
     """
+    problems, places = [], []
+    for A, B in pairs:
+        problem, place = _dtw_problem(A, B)
+        problems.append(problem)
+        places.append(place)
+    return [place(path) for place, path in zip(places, align_many(problems), strict=True)]
+
+
+def _dtw_problem(
+    A: np.ndarray, B: np.ndarray
+) -> tuple[tuple[CostFn, int, int], Callable[[np.ndarray], np.ndarray]]:
+    """The alignment problem of one pair of :func:`dtw_positions`, and its path's positions."""
     seg = np.diff(B, axis=0)  # (q-1, d)
     seg_len2 = (seg**2).sum(axis=1)
     start = B[:-1]
@@ -60,14 +73,17 @@ def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
         def foot(i: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             """(t, distance) of rows i of A to segments k (broadcast)."""
             rel = A[i] - start[k]
-            a_dot_s = np.einsum("...d,...d->...", rel, seg[k])
+            seg_k = seg[k]
+            a_dot_s = np.einsum("...d,...d->...", rel, seg_k)
             with np.errstate(divide="ignore", invalid="ignore"):
                 t = np.nan_to_num(np.clip(a_dot_s / seg_len2[k], 0.0, 1.0))
-            gap = rel - t[..., None] * seg[k]
+            gap = rel - t[..., None] * seg_k
             return t, np.sqrt(np.einsum("...d,...d->...", gap, gap))
 
-        path = align(lambda i, k: foot(i, k)[1], m, seg.shape[0])
-        return s[path] + foot(np.arange(m), path)[0] * np.sqrt(seg_len2[path])
+        def banded(path: np.ndarray) -> np.ndarray:
+            return s[path] + foot(np.arange(m), path)[0] * np.sqrt(seg_len2[path])
+
+        return (in_blocks(lambda i, k: foot(i, k)[1], A.shape[1]), m, seg.shape[0]), banded
     # |a - b_k - t s_k|^2 from matrix products, never an (m, q, d) temporary
     a_dot_s = A @ seg.T - (start * seg).sum(axis=1)  # (a - b_k) . s_k
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -75,8 +91,11 @@ def dtw_positions(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     t = np.nan_to_num(t)
     d2 = (A**2).sum(axis=1)[:, None] + (start**2).sum(axis=1)[None] - 2 * A @ start.T
     cost = np.sqrt(np.maximum(d2 - 2 * t * a_dot_s + t**2 * seg_len2, 0.0))  # (m, q-1)
-    path = monotone_assignment(cost)
-    return s[path] + t[np.arange(m), path] * np.sqrt(seg_len2[path])
+
+    def whole(path: np.ndarray) -> np.ndarray:
+        return s[path] + t[np.arange(m), path] * np.sqrt(seg_len2[path])
+
+    return (lambda i, k: cost[i, k], m, seg.shape[0]), whole
 
 
 @dataclass
@@ -97,14 +116,19 @@ def place_on_streams(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> 
     F = X.reshape(n, -1)
     members = stream_members(streams, frames)
     lines = [m for m in members if m.size >= 2]
+    shapes = [F[m] for m in members]
     pos = np.empty((len(lines), n))
+    pairs, targets = [], []
     for c, idx in enumerate(lines):
         B = F[idx]
-        for other in members:
+        for other, A in zip(members, shapes, strict=True):
             if other is idx:
                 pos[c, idx] = arc_length(B)
             else:
-                pos[c, other] = dtw_positions(F[other], B)
+                pairs.append((A, B))
+                targets.append((c, other))
+    for (c, other), p in zip(targets, dtw_positions(pairs), strict=True):
+        pos[c, other] = p
     return Placement(lines=lines, pos=pos)
 
 
