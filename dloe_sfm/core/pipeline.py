@@ -172,7 +172,8 @@ def robust_rounds(
     bend the graph, so removing them tightens the fit, while at coarse sampling the largest
     residuals are the graph's own interpolation errors and dropping them helps nothing
     (docs/method.md, "Wrong detections (robust rounds)"). Stops when no pair was swapped and the
-    rejected set changed by at most 0.1 % of the observations.
+    rejected set changed by at most 0.1 % of the observations (1 % with soft rays: under noise
+    it drifts by a few tenths of a percent a round without changing the result).
     Returns ``result`` re-solved, with ``outliers`` the observations the final solve left out
     and ``swaps`` every exchange kept, and the capture it was solved on (swaps undone,
     observations reweighted).
@@ -208,7 +209,9 @@ def robust_rounds(
                            "%d of %d observations (robust_scale_px below the noise?)", it + 1,
                            float(np.median(scale)), int(now.sum()), int(current.visible.sum()))
             break
-        settled = (now != rejected).sum() <= 1e-3 * current.visible.sum()
+        # under noise (soft rays) the rejected set drifts a little every round
+        settle = 1e-2 if result.noise_px > 0 else 1e-3
+        settled = (now != rejected).sum() <= settle * current.visible.sum()
         if it == options.robust_iterations or (not new.size and settled):
             break
         expected = float(np.nanmedian(res[~now]))
