@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .sequencing import stream_members
+
 MEDIAN_RADIUS = float(np.sqrt(2.0 * np.log(2.0)))
 """Median radius of 2D Gaussian noise of unit std."""
 
@@ -48,7 +50,7 @@ def estimate_noise_px(res: np.ndarray) -> float:
     if (seen.sum(axis=0) >= MIN_OBSERVATIONS).sum() < 4:
         return 0.0
     median = float(np.median(res[seen]))
-    return median / (FIT_RATIO * MEDIAN_RADIUS) if median > 0 else 0.0
+    return median / residual_floor_px(1.0) if median > 0 else 0.0
 
 
 def residual_floor_px(noise_px: float) -> float:
@@ -70,11 +72,9 @@ def image_folds(streams: np.ndarray, frames: np.ndarray, count: int = FOLDS) -> 
     for the rest (a stream's ends and lone photos: nothing places them without their
     detections)."""
     fold = np.full(streams.size, -1)
-    for s in np.unique(streams):
-        idx = np.flatnonzero(streams == s)
-        if idx.size >= 3:
-            inner = idx[np.argsort(frames[idx], kind="stable")][1:-1]
-            fold[inner] = np.arange(inner.size) % count
+    for members in stream_members(streams, frames):
+        if members.size >= 3:
+            fold[members[1:-1]] = np.arange(members.size - 2) % count
     return fold
 
 

@@ -190,8 +190,9 @@ def robust_rounds(
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
-        fit = float(np.nanmedian(res[~rejected]))
-        if it == 1 and fit - floor > 0.95 * (expected - floor):
+        if it == 1 and (fit := float(np.nanmedian(res[~rejected]))) - floor > 0.95 * (
+            expected - floor
+        ):
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
                         "%.2f -> %.2f px, %.2f px of it noise)", expected, fit, floor)
             result, current, swaps, solved = plain, capture, swaps[:0], capture
