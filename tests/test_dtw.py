@@ -4,8 +4,18 @@ polyline (core.sequencing.dtw_positions)."""
 import numpy as np
 import pytest
 
-from dloe_sfm.core.dtw import align, align_many, banded_assignment, in_blocks, monotone_assignment
+from dloe_sfm.core.dtw import align_many, banded_assignment, in_blocks
 from dloe_sfm.core.sequencing import dtw_positions
+
+
+def whole(cost: np.ndarray) -> np.ndarray:
+    """The exact assignment of a whole (m, q) table."""
+    return banded_assignment([cost], [np.zeros(cost.shape[0], dtype=np.int64)])[0]
+
+
+def align(cost, m: int, q: int, *, full_table: int) -> np.ndarray:
+    """One problem alone."""
+    return align_many([(cost, m, q)], full_table=full_table)[0]
 
 
 def optimum(cost: np.ndarray) -> float:
@@ -17,7 +27,7 @@ def optimum(cost: np.ndarray) -> float:
 
 
 def replaced(cost: np.ndarray) -> np.ndarray:
-    """``cost`` with non-finite entries as ``align`` takes them."""
+    """``cost`` with non-finite entries as ``align_many`` takes them."""
     finite = np.isfinite(cost)
     return np.where(finite, cost, 10 * cost[finite].max() + 1 if finite.any() else 1.0)
 
@@ -32,9 +42,9 @@ def curve(u: np.ndarray) -> np.ndarray:
     return np.stack([np.cos(3 * u), np.sin(3 * u), u], axis=1)
 
 
-def test_monotone_assignment_respects_order(rng):
+def test_whole_table_assignment_respects_order(rng):
     cost = rng.random((30, 20))
-    path = monotone_assignment(cost)
+    path = whole(cost)
     assert (np.diff(path) >= 0).all()
     # brute-force check of optimality on a tiny instance
     small = rng.random((4, 3))
@@ -43,7 +53,7 @@ def test_monotone_assignment_respects_order(rng):
         for c in np.array(np.meshgrid(*[range(3)] * 4)).reshape(4, -1).T
         if (np.diff(c) >= 0).all()
     )
-    p = monotone_assignment(small)
+    p = whole(small)
     assert abs(small[np.arange(4), p].sum() - best[0]) < 1e-12
 
 
@@ -138,7 +148,7 @@ def test_align_coarse_to_fine_matches_the_whole_table(rng):
     def cost(i, j):
         return d[i, j]
 
-    exact = monotone_assignment(d)
+    exact = whole(d)
     assert np.array_equal(align(cost, 300, 170, full_table=64), exact)
     assert np.array_equal(align(cost, 300, 170, full_table=300 * 170), exact)  # whole table
     # a non-finite cost is taken only where nothing else is

@@ -293,8 +293,7 @@ def soft_checks_out(
     ``auto``) predicts held-out detections better than the hard-ray one ``hard``
     (``noise.soft_wins``; observation folds, each model's folds started from its own solution,
     on at most ``noise.CHECK_IMAGES`` images in the middle of the time line), logged."""
-    window = middle_images(st.f)
-    sub = capture.subset(window) if window.size < capture.num_images else capture
+    window, sub = middle_window(capture, st.f)
     hard_px = held_out_px(sub, options.replace(noise_px=0.0), norm.to_world(hard.X)[window],
                           hard.D[window], np.inf)
     soft_px = held_out_px(sub, options, norm.to_world(st.best.X)[window], st.best.D[window],
@@ -306,11 +305,16 @@ def soft_checks_out(
     return wins
 
 
-def middle_images(f: np.ndarray, size: int = CHECK_IMAGES) -> np.ndarray:
-    """Sorted indices of the (at most) ``size`` images in the middle of the time line ``f``."""
-    order = np.argsort(f, kind="stable")
-    lo = max(0, (f.size - size) // 2)
-    return np.sort(order[lo:lo + size])
+def middle_window(
+    capture: Capture, f: np.ndarray, size: int = CHECK_IMAGES
+) -> tuple[np.ndarray, Capture]:
+    """(sorted indices, capture) of the (at most) ``size`` images in the middle of the time line
+    ``f``: the capture itself when it has no more."""
+    if f.size <= size:
+        return np.arange(f.size), capture
+    lo = (f.size - size) // 2
+    window = np.sort(np.argsort(f, kind="stable")[lo:lo + size])
+    return window, capture.subset(window)
 
 
 def held_out_px(

@@ -30,19 +30,13 @@ CostFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """``cost(rows, cols)``: the costs of rows (m, 1) against columns (m, w) or (1, q), broadcast."""
 
 
-def monotone_assignment(cost: np.ndarray) -> np.ndarray:
-    """Assign every row of cost (m, q) one column, columns never decreasing, minimum total cost.
-
-    Dynamic time warping where each row takes exactly one column. Returns (m,) column indices.
-    """
-    return banded_assignment([cost], [np.zeros(cost.shape[0], dtype=np.int64)])[0]
-
-
 def banded_assignment(costs: Sequence[np.ndarray], lows: Sequence[np.ndarray]) -> list[np.ndarray]:
-    """:func:`monotone_assignment` of many tables restricted to bands: row i of a table may take
-    columns ``lo[i] .. lo[i] + w - 1`` with costs ``cost[i]`` (m, w); ``lo`` never decreasing, inf
-    marks a column outside the band. Returns the (m,) column indices (of the full table) of every
-    table. Tables of similar widths are padded to one stack and solved together."""
+    """Assign every row of each table one column, columns never decreasing, minimum total cost
+    (dynamic time warping where each row takes exactly one column), within bands: row i of a
+    table may take columns ``lo[i] .. lo[i] + w - 1`` with costs ``cost[i]`` (m, w); ``lo`` never
+    decreasing (all 0 for a whole table), inf marks a column outside the band. Returns the (m,)
+    column indices (of the full table) of every table. Tables of similar widths are padded to
+    one stack and solved together."""
     groups: dict[int, list[int]] = {}
     for j, cost in enumerate(costs):
         groups.setdefault((max(cost.shape[1], MIN_STACK_WIDTH) - 1).bit_length(), []).append(j)
@@ -92,21 +86,17 @@ def _stacked_assignment(costs: list[np.ndarray], lows: list[np.ndarray]) -> list
     return [lo[: n + 1, j] + path[: n + 1, j] for j, n in enumerate(last)]
 
 
-def align(cost: CostFn, m: int, q: int, *, full_table: int = FULL_TABLE) -> np.ndarray:
-    """(m,) non-decreasing columns of q aligning m rows at minimum total ``cost`` (see
-    :data:`CostFn`; non-finite costs are replaced by ten times the largest finite one plus one,
-    so that they are taken only where nothing else is). Exact (:func:`monotone_assignment`) up to
-    ``full_table`` entries; beyond, coarse to fine: the rows and columns subsampled by two are
-    aligned first and the full resolution is searched within :data:`RADIUS` columns of that
-    alignment's band, so time and memory grow as (m + q) times the band's width."""
-    return align_many([(cost, m, q)], full_table=full_table)[0]
-
-
 def align_many(
     problems: Sequence[tuple[CostFn, int, int]], *, full_table: int = FULL_TABLE
 ) -> list[np.ndarray]:
-    """:func:`align` of every ``(cost, m, q)`` (m >= 1 rows), all together: level by level, the
-    whole tables of a level in one stack and the bands in another (:func:`banded_assignment`)."""
+    """For every ``(cost, m, q)`` (m >= 1 rows): the (m,) non-decreasing columns of q aligning m
+    rows at minimum total ``cost`` (see :data:`CostFn`; non-finite costs are replaced by ten times
+    the largest finite one plus one, so that they are taken only where nothing else is). Exact
+    up to ``full_table`` entries; beyond, coarse to fine: the rows and columns subsampled by two
+    are aligned first and the full resolution is searched within :data:`RADIUS` columns of that
+    alignment's band, so time and memory grow as (m + q) times the band's width. All problems
+    together, level by level: the whole tables of a level in one stack and the bands in another
+    (:func:`banded_assignment`)."""
     is_whole = [m * q <= full_table or m < 4 or q < 4 for _, m, q in problems]
     whole = [j for j, w in enumerate(is_whole) if w]
     fine = [j for j, w in enumerate(is_whole) if not w]

@@ -86,7 +86,7 @@ def pseudo_triangulate(
     smallest mean gap. Two views cannot tell times apart when the motion runs along their epipolar
     lines, so with ``frames`` the partners in another stream of two or more images are only the
     images within one of an order-preserving alignment of the two streams (DTW on the gaps,
-    ``core.dtw.align``: linear in the streams' lengths); lone photos are scored against every
+    ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against every
     image. Each observed point takes the depth of the closest point on its ray to the partner's
     ray; a point the partner cannot serve takes the next-best partner that can.
 

@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import scipy.sparse as sp
 
-from .alternation import Progress, held_out_px, middle_images, soft_ray_weight, solve_event
+from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .capture import Capture
 from .clocks import clocks_hold, fit_clocks, ray_equations, time_chain
 from .events import segment_events
@@ -242,8 +242,7 @@ def clocks_predict(
     """Whether one event's clocks ``t`` predict held-out images' detections at least as well as
     DLOE's graph (``clocks.clocks_hold``; ``alternation.held_out_px`` on at most
     ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either way."""
-    window = middle_images(t)
-    sub = capture.subset(window) if window.size < capture.num_images else capture
+    window, sub = middle_window(capture, t)
     lambda2 = soft_ray_weight(capture, options)
     graph = held_out_px(sub, options, X_world[window], D[window], lambda2, images=True)
     clock = held_out_px(sub, options, X_world[window], D[window], lambda2, times=t[window],
