@@ -42,6 +42,19 @@ def test_lab_rig(shared_dir, tmp_path) -> None:
     held_sync = sync["held_out_views_error_px (leave one camera out)"]["median"]
     assert held_dloe < 1.5 * held_sync
     assert table["dloe_vs_sync_distance_mm"]["median"] < 100
+    # timing against the true frames at default options: |tau| 0.966, offset errors up to
+    # 0.99 stream frame (cam03), RMS time error 1.8 frames
+    timing = table["timing"]
+    assert timing["kendall_tau"] >= 0.95
+    assert np.isfinite(timing["time_error_rms_frames"]) and timing["time_error_rms_frames"] < 4
+    assert set(timing["streams"]) == {"cam01", "cam02", "cam03", "cam04"}
+    assert timing["streams"][timing["reference_camera"]]["offset_error_frames"] == 0
+    for stream in timing["streams"].values():
+        assert np.isfinite([stream["offset_error_frames"], stream["offset_error_stream_frames"],
+                            stream["offset_error_ms"], stream["clock_offset_error_frames"],
+                            stream["clock_rate"]]).all()
+        assert abs(stream["offset_error_stream_frames"]) < 2
+    assert len(table["acceptance"]) == 3
     assert len(list((out / "dloe" / "frames").glob("*.ply"))) == 100
     assert (out / "workspace" / "sparse" / "0" / "images.bin").is_file()
 

@@ -268,11 +268,14 @@ def fit_clocks(
 
     ``t0`` (N,) first-guess times (DTW placement), ``streams`` / ``frames`` (N,) with every
     image in a stream; ``E``, ``rhs`` from :func:`ray_equations`. The longest stream is the
-    reference (its first-guess start and the streams' median first-guess rate are kept). The
-    other streams' offsets are searched on a grid of ``grid_steps`` per frame period (its
-    residual on the ``grid_points`` most-observed points of the middle :data:`GRID_IMAGES`
-    images), then fitted with one shared rate on all images;
-    unless ``shared_rate`` is True, their rates are then freed too, starting from that fit.
+    reference (its first-guess start and rate are kept). The other streams' offsets are
+    searched on a grid of ``grid_steps`` per frame period (its residual on the ``grid_points``
+    most-observed points of the middle :data:`GRID_IMAGES` images) from two starts: the other
+    streams at the median of all streams' first-guess rates (the first guess of one stream's
+    rate is noisy on few images) and, unless ``shared_rate`` (all streams at the median), at
+    their own (streams filmed at different frame rates); the start whose grid ends lower is
+    fitted at those rates on all images, then, unless ``shared_rate``, with the rates freed
+    too.
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
@@ -284,24 +287,33 @@ def fit_clocks(
     f = frames.astype(np.float64)
     ids, inv = np.unique(streams, return_inverse=True)
     k = ids.size
-    rate = float(np.median([np.polyfit(f[inv == s], t0[inv == s], 1)[0] for s in range(k)]))
-    a0 = np.array([np.median(t0[inv == s] - rate * f[inv == s]) for s in range(k)])
+    own = np.array([np.polyfit(f[inv == s], t0[inv == s], 1)[0] for s in range(k)])
+    if shared_rate:
+        own[:] = np.median(own)
     ref = int(np.argmax(np.bincount(inv)))
     free = np.flatnonzero(np.arange(k) != ref)
     onehot = (inv[:, None] == free[None, :]).astype(np.float64)
     dt = np.concatenate([onehot, onehot * f[:, None]], axis=1)  # d t / d (offsets, rates)
-    x0 = np.concatenate([a0[free], np.full(free.size, rate)])
+
+    def start_at(rates: np.ndarray) -> np.ndarray:
+        """The free streams' (offsets, rates) at ``rates`` through their first-guess times."""
+        a0 = [np.median(t0[inv == s] - rates[s] * f[inv == s]) for s in free]
+        return np.concatenate([a0, rates[free]])
+
+    base = np.median(t0[inv == ref] - own[ref] * f[inv == ref]) + own[ref] * f * (inv == ref)
 
     def times(x: np.ndarray) -> np.ndarray:
-        return a0[inv] + rate * f + dt @ (x - x0)
+        return base + dt @ x
 
-    t_init = times(x0)
+    starts = [start_at(np.full(k, np.median(own)))]
+    if not shared_rate:
+        starts.append(start_at(own))
+    t_init = times(starts[0])
     interval = float(np.median(np.diff(np.unique(t_init))))
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
-    period = rate * float(np.median(np.diff(np.unique(f[inv == ref]))))
-    start = float(t_init.min()) - 3 * period - max(hs)
+    period = own[ref] * float(np.median(np.diff(np.unique(f[inv == ref]))))
+    start = min(float(times(x).min()) for x in starts) - 3 * period - max(hs)
 
-    x = x0.copy()
     h_mid = hs[len(hs) // 2]
     steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:grid_points]
@@ -311,24 +323,29 @@ def fit_clocks(
     if t_init.size > GRID_IMAGES:
         lo = (t_init.size - GRID_IMAGES) // 2
         win = np.sort(np.argsort(t_init, kind="stable")[lo:lo + GRID_IMAGES])
-        grid_start = float(t_init[win].min()) - 3 * period - max(hs)
+        grid_start = min(float(times(x)[win].min()) for x in starts) - 3 * period - max(hs)
     grid_rays = _rays(E[win][:, seen], rhs[win][:, seen], visible[win][:, seen])
 
     def grid_residual(x: np.ndarray) -> float:
         r = _SplineFit(times(x)[win], grid_rays, h_mid, grid_start).res
         return float(r @ r)
 
-    value = None  # the grid's residual at x (its trial 0 along every coordinate)
-    for _ in range(3):  # coordinate sweeps until none moves
-        before = x.copy()
-        for c in range(free.size):
-            trials = [x + d * (np.arange(x.size) == c) for d in steps]
-            values = [value if d == 0 and value is not None else grid_residual(y)
-                      for d, y in zip(steps, trials, strict=True)]
-            best = int(np.argmin(values))
-            x, value = trials[best], values[best]
-        if np.array_equal(x, before):
-            break
+    def grid(x: np.ndarray) -> tuple[np.ndarray, float]:
+        """Coordinate sweeps over the offsets from ``x`` until none moves: (x, residual)."""
+        value = grid_residual(x)
+        for _ in range(3):
+            before = x.copy()
+            for c in range(free.size):
+                trials = [x + d * (np.arange(x.size) == c) for d in steps]
+                values = [value if d == 0 else grid_residual(y)
+                          for d, y in zip(steps, trials, strict=True)]
+                best = int(np.argmin(values))
+                x, value = trials[best], values[best]
+            if np.array_equal(x, before):
+                break
+        return x, value
+
+    x = min((grid(x) for x in starts), key=lambda found: found[1])[0]
     rays = _rays(E, rhs, visible)
     at_grid = [_SplineFit(times(x), rays, h, start) for h in hs]
     norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]

@@ -189,7 +189,7 @@ def x_step(
 
     With ``lambda2 = inf`` observed points are pinned to their rays, ``X_np = C_n + l_np r_np``,
     and only the depths l_np (plus the 3 coordinates of unobserved points) are unknown
-    (:func:`_hard_point`). Otherwise the O term ``l2 w_np |(X_np - C_n) x r_np|^2`` joins the
+    (:func:`_hard_points`). Otherwise the O term ``l2 w_np |(X_np - C_n) x r_np|^2`` joins the
     smoothness form Q, 3 unknowns per image (:func:`_soft_band`). X_prev fills in points no
     equation reaches (never the case on a connected graph).
 
@@ -214,9 +214,7 @@ def x_step(
     r0 = np.nan_to_num(prob.rays)
     X = np.empty((n, p, 3))
     if np.isinf(lambda2):
-        rays = r0.transpose(1, 2, 0).copy()  # (P, 3, N): one coordinate over the images
-        for j in range(p):
-            X[:, j] = _hard_point(Q, perm, qi, qk, q, rays[j], vis[:, j], prob.C, reg)
+        X = _hard_points(Q, perm, qi, qk, q, r0, vis, prob.C, reg)
     else:
         width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)
         band_Q = None
@@ -238,70 +236,98 @@ def x_step(
     return X
 
 
-def _hard_point(
+def _hard_points(
     Q: sp.csr_matrix,
     perm: np.ndarray,
     qi: np.ndarray,
     qk: np.ndarray,
     q: np.ndarray,
-    r: np.ndarray,
-    obs: np.ndarray,
+    rays: np.ndarray,
+    vis: np.ndarray,
     C: np.ndarray,
     reg: float,
 ) -> np.ndarray:
-    """X (N, 3) of one point with hard rays r (3, N) in the images ``obs``: ``X = c + B z``, one
-    depth column r_n of B per observed image (c_n = C_n) and three unit columns per unobserved
-    one (c_n = 0), ``(B^T kron(Q, I3) B + reg I) z = -B^T kron(Q, I3) c``.
+    """X (N, P, 3) of every point with hard rays ``rays`` (N, P, 3, zero where unobserved) in
+    the images ``vis`` (N, P). Point p: ``X = c + B z``, one depth column r_n of B per observed
+    image (c_n = C_n) and three unit columns per unobserved one (c_n = 0),
+    ``(B^T kron(Q, I3) B + reg I) z = -B^T kron(Q, I3) c``.
 
-    The unknowns follow the images in the band order ``perm``, and the system is assembled from
-    Q's entries ``q`` at (``qi``, ``qk``), ``qi`` no later than ``qk`` in that order, rather than
-    as sparse products: Q_nm r_n . r_m between observed images, Q_nm r_n (or r_m) between an
-    observed and an unobserved one, Q_nm I3 between unobserved ones.
+    Each point's unknowns follow the images in the band order ``perm``, and its system is
+    assembled from Q's entries ``q`` at (``qi``, ``qk``), ``qi`` no later than ``qk`` in that
+    order, rather than as sparse products: Q_nm r_n . r_m between observed images, Q_nm r_n (or
+    r_m) between an observed and an unobserved one, Q_nm I3 between unobserved ones. The points'
+    systems are independent: those narrow enough for a band are the blocks of one band matrix,
+    factored by a single banded Cholesky (zero entries between the blocks); the others, and all
+    of them when that matrix is not numerically positive definite, are solved one by one
+    (:func:`_point_system`).
     """
-    n = obs.size
-    size = np.where(obs, 1, 3)
-    ends = np.cumsum(size[perm])
-    m = int(ends[-1])
-    start = np.empty(n, dtype=np.int64)
-    start[perm] = ends - size[perm]
-    oi, ok = obs[qi], obs[qk]
-    # H's entries on and below the diagonal (rows >= cols), one coordinate t at a time
-    rows, cols, vals = [], [], []
-    pick = oi & ok
-    i, k, qq = qi[pick], qk[pick], q[pick]
-    rows.append(start[k])
-    cols.append(start[i])
-    vals.append(qq * ((r[0, i] * r[0, k] + r[1, i] * r[1, k]) + r[2, i] * r[2, k]))
-    for t in range(3):
-        pick = oi & ~ok
-        i, k, qq = qi[pick], qk[pick], q[pick]
-        rows.append(start[k] + t)
-        cols.append(start[i])
-        vals.append(qq * r[t, i])
-        pick = ~oi & ok
-        i, k, qq = qi[pick], qk[pick], q[pick]
-        rows.append(start[k])
-        cols.append(start[i] + t)
-        vals.append(qq * r[t, k])
-        pick = ~oi & ~ok
-        i, k, qq = qi[pick], qk[pick], q[pick]
-        rows.append(start[k] + t)
-        cols.append(start[i] + t)
-        vals.append(qq)
-    rows, cols, vals = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    seen, miss = np.flatnonzero(obs), np.flatnonzero(~obs)
-    g = Q @ np.where(obs[:, None], C, 0.0)  # kron(Q, I3) c, (N, 3)
-    rhs = np.empty(m)
-    rhs[start[seen]] = -((r[0, seen] * g[seen, 0] + r[1, seen] * g[seen, 1])
-                         + r[2, seen] * g[seen, 2])
-    rhs[start[miss][:, None] + np.arange(3)] = -g[miss]
-    width = int((rows - cols).max(initial=0))
+    n, p = vis.shape
+    size = np.where(vis, 1, 3)
+    ends = np.cumsum(size[perm], axis=0)
+    m = ends[-1]
+    base = np.concatenate([[0], np.cumsum(m)[:-1]])
+    start = np.empty((n, p), dtype=np.int64)  # first unknown of (image, point), points stacked
+    start[perm] = ends - size[perm] + base
+    si, sk = start[qi], start[qk]  # (E, P): every entry of Q for every point
+    oi, ok = vis[qi], vis[qk]
+    ri, rk = rays[qi], rays[qk]
+    qq = q[:, None]
+    kinds = (oi & ok, oi & ~ok, ~oi & ok, ~oi & ~ok)
+    width = (sk - si + 2 * kinds[1]).max(axis=0, initial=0)
+    banded = width <= np.maximum(BAND_WIDTH, np.sqrt(m))
+
+    def entries(pick: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """H's entries on and below the diagonal (rows >= cols) of the points ``pick`` (P,)."""
+        at = [np.flatnonzero(kind & pick) for kind in kinds]  # flat (E, P) indices
+        a, b, qs = si.ravel(), sk.ravel(), np.broadcast_to(qq, si.shape).ravel()
+        dot = (ri[..., 0] * rk[..., 0] + ri[..., 1] * rk[..., 1]) + ri[..., 2] * rk[..., 2]
+        rows, cols, vals = [b[at[0]]], [a[at[0]]], [qs[at[0]] * dot.ravel()[at[0]]]
+        for t in range(3):
+            rows += [b[at[1]] + t, b[at[2]], b[at[3]] + t]
+            cols += [a[at[1]], a[at[2]] + t, a[at[3]] + t]
+            vals += [qs[at[1]] * ri[..., t].ravel()[at[1]], qs[at[2]] * rk[..., t].ravel()[at[2]],
+                     qs[at[3]]]
+        return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+
+    g = (Q @ np.where(vis[..., None], C[:, None, :], 0.0).reshape(n, 3 * p)).reshape(n, p, 3)
+    rhs = np.empty(int(m.sum()))  # -B^T kron(Q, I3) c, g (N, P, 3) the product's second factor
+    img, pj = np.nonzero(vis)
+    rhs[start[img, pj]] = -((rays[img, pj, 0] * g[img, pj, 0] + rays[img, pj, 1] * g[img, pj, 1])
+                            + rays[img, pj, 2] * g[img, pj, 2])
+    hole, qj = np.nonzero(~vis)
+    rhs[start[hole, qj][:, None] + np.arange(3)] = -g[hole, qj]
+    z = np.empty(rhs.size)
+    solved = np.zeros(p, dtype=bool)
+    if banded.any():
+        rows, col, vals = entries(banded)
+        w = int(width[banded].max())
+        band = np.zeros((rhs.size, w + 1))  # rows of the other points: reg on the diagonal only
+        band.reshape(-1)[col * (w + 1) + (rows - col)] = vals
+        band[:, 0] += reg
+        zb = _banded_cholesky(band, np.where(np.repeat(banded, m), rhs, 0.0))
+        if zb is not None:
+            z, solved = zb, banded
+    for j in np.flatnonzero(~solved):
+        lo, hi = base[j], base[j] + m[j]
+        rows, col, vals = entries(np.arange(p) == j)
+        z[lo:hi] = _point_system(rows - lo, col - lo, vals, int(m[j]), rhs[lo:hi], reg,
+                                 width=int(width[j]) if banded[j] else None)
+    X = np.empty((n, p, 3))
+    X[img, pj] = C[img] + rays[img, pj] * z[start[img, pj]][:, None]
+    X[hole, qj] = z[start[hole, qj][:, None] + np.arange(3)]
+    return X
+
+
+def _point_system(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, m: int,
+                  rhs: np.ndarray, reg: float, *, width: int | None) -> np.ndarray:
+    """z of one point's system of :func:`_hard_points` (its entries at or below the diagonal):
+    by banded Cholesky with a ``width`` when positive definite, else by SuperLU."""
     z = None
-    if width <= max(BAND_WIDTH, np.sqrt(m)):
+    if width is not None:
         band = np.zeros((m, width + 1))
         band.reshape(-1)[cols * (width + 1) + (rows - cols)] = vals
         band[:, 0] += reg
-        z = _banded_cholesky(band, rhs)
+        z = _banded_cholesky(band, rhs.copy())
     if z is None:
         off = rows != cols
         H = sp.csc_matrix(
@@ -310,10 +336,7 @@ def _hard_point(
             shape=(m, m),
         )
         z = _superlu(sp.csc_matrix(H + reg * sp.identity(m, format="csc")), rhs)
-    X = np.empty((n, 3))
-    X[seen] = C[seen] + r[:, seen].T * z[start[seen]][:, None]
-    X[miss] = z[start[miss][:, None] + np.arange(3)]
-    return X
+    return z
 
 
 def _soft_band(

@@ -9,7 +9,9 @@ Data: the Pose2Sim single-trial sample (Qualisys calibration + OpenPose BODY_25B
 3. OpenPose JSON -> keypoints keyed by those image names -> capture -> DLOE -> section-4 outputs;
 4. synchronised DLT triangulation of the same detections (all cameras at every frame, undistorted
    rays) and a comparison table: reprojection error in the views each method used, in views it
-   did not use (held out), and the 3D distance between the two reconstructions.
+   did not use (held out), and the 3D distance between the two reconstructions;
+5. DLOE's timing against the true frames (Kendall tau, per-stream offset errors, RMS time error)
+   and issue 14's acceptance checks, at the package's default solver options.
 
     python pipelines/lab_rig/pipeline.py --data ../shared/data/pose2sim_single_trial \\
         --out outputs/lab_rig
@@ -30,18 +32,24 @@ import numpy as np
 import dloe_sfm
 from dloe_sfm.calibration import import_calibration, read_calibration
 from dloe_sfm.colmap import Workspace, load_workspace
+from dloe_sfm.columns import solved_capture
 from dloe_sfm.config import load_options
-from dloe_sfm.core.options import Options
+from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import error_stats, export_outputs, reprojection_errors
 from dloe_sfm.io import atomic_path, check_output, save_npz
 from dloe_sfm.keypoints import Keypoints, read_keypoints
+from dloe_sfm.mocap_export import image_times
 from dloe_sfm.observations import build_capture, select_person
 
 logger = logging.getLogger("dloe_sfm")
 
 LAYOUT = "BODY_25B"  # Pose2Sim's OpenPose model (same joint count as OpenPose's default BODY_25)
 KEY = re.compile(r"^(cam\d+)_json/\1\.(\d+)$")  # cam01_json/cam01.0012
+FPS = 60.0  # the sample's frame rate: an image's true time is its frame number
+ACCEPT_TAU = 0.99  # issue 14's acceptance of the lab rig (see the README)
+ACCEPT_OFFSET_STREAM_FRAMES = 0.25
+ACCEPT_HELD_OUT_MEDIAN_PX = 14.0
 
 
 def camera_folder(serial: str) -> str:
@@ -106,8 +114,7 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
     data, out = Path(data), Path(out)
     calib = data / "calibration" / "Calib.qca.txt"
     out = check_output(out, protected=[data], overwrite=overwrite)
-    # OpenPose on 1088 x 1920 video: a few pixels of detection noise (see the README)
-    options = load_options(None, overrides, base=Options(noise_px=5.0))
+    options = load_options(None, overrides)
     tic = time.perf_counter()
 
     serials = [c.name for c in read_calibration(calib)]
@@ -132,12 +139,14 @@ def run(data: Path, out: Path, *, step: int = 4, min_score: float = 0.3,
         result = dloe_sfm.reconstruct(capture, options)
         seconds_dloe = result.seconds
         logger.info("DLOE: %s, %.1f s", result.message, seconds_dloe)
-        export_outputs(tmp / "dloe", capture, result, workspace=ws, layout=kp.layout,
-                       plots=plots, report={
-                           "inputs": {"data": str(data.resolve()), "step": step,
-                                      "min_score": min_score},
-                           "parameters": options.to_dict()})
+        report = export_outputs(tmp / "dloe", capture, result, workspace=ws, layout=kp.layout,
+                                plots=plots, report={
+                                    "inputs": {"data": str(data.resolve()), "step": step,
+                                               "min_score": min_score},
+                                    "parameters": options.to_dict()})
         table = compare(ws, capture, result, cameras, frames, dets, kept, min_score, tmp)
+        table["timing"] = timing(capture, result, report["sync"], step)
+        table["acceptance"] = acceptance(table)
         table["seconds"] = {"dloe_solve": seconds_dloe, "pipeline": time.perf_counter() - tic}
         with open(tmp / "comparison.json", "w") as f:
             json.dump(table, f, indent=2)
@@ -216,6 +225,70 @@ def compare(ws: Workspace, capture: dloe_sfm.Capture, result: dloe_sfm.Result,
     }
 
 
+def timing(capture: dloe_sfm.Capture, result: dloe_sfm.Result, sync: dict, step: int) -> dict:
+    """DLOE's timing against the truth: the true time of image ``camXX/NNNN.jpg`` is frame NNNN.
+
+    The estimated times are the exports' (``mocap_export.image_times``, in frames of the
+    reference stream as its images are numbered: 60 Hz frames here). A stream's offset error is
+    the median over its images of (estimated - true time) minus the reference stream's; the
+    RMS time error is taken after removing the mean of (estimated - true time). ``sync``:
+    ``report.json``'s entry, whose first event's clocks (offset at the stream's first image,
+    rate) are given for comparison.
+    """
+    timeline = image_times(solved_capture(capture, result), result)
+    names = capture.image_names
+    truth = np.array([int(Path(name).stem) for name in names], dtype=np.float64)
+    camera = np.array([name.split("/")[0] for name in names])
+    stream_ids = capture.stream_ids
+    error = timeline.time - truth
+    clocks = sync["events"][0]
+    reference = clocks["reference_stream"]
+    first = {int(s): truth[stream_ids == s][0] - capture.frame[stream_ids == s][0]
+             for s in np.unique(stream_ids)}  # true time of each stream's frame 0
+    ref_error = float(np.median(error[stream_ids == reference]))
+    streams = {}
+    for s in np.unique(stream_ids):
+        mine = stream_ids == s
+        offset = float(np.median(error[mine])) - ref_error
+        clock = clocks["streams"].get(str(s))
+        streams[str(camera[mine][0])] = {
+            "images": int(mine.sum()),
+            "true_offset_frames": float(first[int(s)] - first[reference]),
+            "offset_error_frames": offset,
+            "offset_error_stream_frames": offset / step,
+            "offset_error_ms": 1000.0 * offset / FPS,
+            "clock_offset_error_frames": None if clock is None else
+            clock["offset_frames"] - float(first[int(s)] - first[reference]),
+            "clock_rate": None if clock is None else clock["rate"],
+        }
+    return {
+        "units": f"frames at {FPS:g} Hz (the image frame numbers), unless named otherwise; "
+                 f"a stream frame is {step} of them",
+        "events": len(sync["events"]),
+        "time_base": clocks["base"],
+        "kendall_tau": kendall_tau(result.order, truth),
+        "reference_camera": str(camera[stream_ids == reference][0]),
+        "time_error_rms_frames": float(np.sqrt(np.mean((error - error.mean()) ** 2))),
+        "streams": streams,
+    }
+
+
+def acceptance(table: dict) -> dict:
+    """Issue 14's three acceptance items (offsets: within a fraction of the stream's own frame
+    period), each with its measured value and whether it holds."""
+    tau = table["timing"]["kendall_tau"]
+    offset = max(abs(s["offset_error_stream_frames"])
+                 for s in table["timing"]["streams"].values())
+    held = table["dloe_async"]["held_out_views_error_px"]["median"]
+    return {
+        f"kendall |tau| >= {ACCEPT_TAU}": {"value": tau, "pass": tau >= ACCEPT_TAU},
+        f"max |stream offset error| <= {ACCEPT_OFFSET_STREAM_FRAMES} stream frame": {
+            "value": offset, "pass": offset <= ACCEPT_OFFSET_STREAM_FRAMES},
+        f"held-out median <= {ACCEPT_HELD_OUT_MEDIAN_PX:g} px": {
+            "value": held, "pass": held is not None and held <= ACCEPT_HELD_OUT_MEDIAN_PX},
+    }
+
+
 def print_table(table: dict) -> None:
     def cell(stats: dict) -> str:
         return "n/a" if stats["mean"] is None else f"{stats['mean']:8.2f} {stats['median']:8.2f}"
@@ -236,6 +309,20 @@ def print_table(table: dict) -> None:
     d = table["dloe_vs_sync_distance_mm"]
     print(f"DLOE vs. synchronised triangulation, 3D distance: mean {d['mean']:.1f} mm, "
           f"median {d['median']:.1f} mm over {d['count']} joints")
+    sync = table["timing"]
+    print(f"timing vs. the true frames: Kendall |tau| {sync['kendall_tau']:.4f}, RMS time error "
+          f"{sync['time_error_rms_frames']:.3f} frames (base: {sync['time_base']}, reference "
+          f"{sync['reference_camera']})")
+    print(f"{'stream':8s} {'true offset':>11s}  {'offset error: frames':>20s} "
+          f"{'stream frames':>13s} {'ms':>7s}  {'clock: offset error':>19s} {'rate':>6s}")
+    for c, s in sync["streams"].items():
+        clock = ("" if s["clock_rate"] is None else
+                 f"{s['clock_offset_error_frames']:19.3f} {s['clock_rate']:6.3f}")
+        print(f"{c:8s} {s['true_offset_frames']:11.0f}  {s['offset_error_frames']:20.3f} "
+              f"{s['offset_error_stream_frames']:13.3f} {s['offset_error_ms']:7.2f}  {clock}")
+    for item, check in table["acceptance"].items():
+        value = "n/a" if check["value"] is None else f"{check['value']:.4g}"
+        print(f"{'PASS' if check['pass'] else 'FAIL'}  {item}: {value}")
 
 
 def main(argv: list[str] | None = None) -> int:
