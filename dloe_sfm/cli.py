@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ctypes
 import importlib
 import logging
 import re
@@ -146,7 +147,21 @@ def _execute(parser: argparse.ArgumentParser, run, args: argparse.Namespace) -> 
             signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
 
 
+def keep_freed_memory() -> None:
+    """With glibc, serve allocations up to 32 MB from the heap and keep freed memory there.
+    By default glibc maps the solver's numpy temporaries of a few MB afresh each time and hands
+    them back on free, a page fault per 4 kB each time: 2-3 s of system time in a 15 s solve of
+    310 images (docs/method.md, "Speed"). Elsewhere nothing is changed."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 32 << 20)  # M_MMAP_THRESHOLD
+        libc.mallopt(-1, 256 << 20)  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
+    keep_freed_memory()
     argv = sys.argv[1:] if argv is None else list(argv)
     command = next((a for a in argv if a in STAGES), None)
     parser = build_parser(command)

@@ -152,6 +152,7 @@ def alternate(
             lambda3=options.lambda3,
             ridge=options.ridge,
             embedding=prior,
+            start=st.W_var,
         )
         W = full_weights(st.W_var, prob)
         t1 = time.perf_counter()

@@ -174,6 +174,9 @@ def smoothness_matrix(W: sp.csr_matrix, D: np.ndarray, lambda1: float) -> sp.csr
 BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
 ``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), wider ones by SuperLU (:func:`x_step`)."""
+BATCH = 2**20
+"""With hard rays the X-step solves the points in groups of about this many of Q's entries over
+all of them (:func:`_hard_points`: one factorisation per group, memory bounded at any size)."""
 
 
 def x_step(
@@ -214,7 +217,9 @@ def x_step(
     r0 = np.nan_to_num(prob.rays)
     X = np.empty((n, p, 3))
     if np.isinf(lambda2):
-        X = _hard_points(Q, perm, qi, qk, q, r0, vis, prob.C, reg)
+        # points solved together: about BATCH of Q's entries over all of them
+        for c in np.array_split(np.arange(p), -(-p * qi.size // BATCH)):
+            X[:, c] = _hard_points(Q, perm, qi, qk, q, r0[:, c], vis[:, c], prob.C, reg)
     else:
         width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)
         band_Q = None

@@ -134,8 +134,10 @@ def w_step(
     lambda3: float,
     ridge: float,
     embedding: np.ndarray | None = None,
+    start: sp.csr_matrix | None = None,
 ) -> sp.csr_matrix:
-    """Optimal W_var rows on their candidate sets (each row a QP on the simplex, solved exactly).
+    """Optimal W_var rows on their candidate sets (each row a QP on the simplex, solved exactly;
+    ``start``, e.g. the previous W_var, a warm start for it).
 
     Row i minimises, with W = (1 - a) W_var + a W_chain and everything else fixed:
     ``|X_i - (W X)_i|^2 + (l1 / D_ii) sum_j W_ij dist_ij + l3 sum_j W_ij^2 c_ij + ridge |w|^2``,
@@ -151,7 +153,7 @@ def w_step(
     E = target[:, :, None] - (1.0 - a)[:, None, None] * np.transpose(
         Xf[cc], (0, 2, 1)
     )  # (N, 3P, k)
-    H = np.einsum("nfi,nfj->nij", E, E)
+    H = np.transpose(E, (0, 2, 1)) @ E  # (N, k, k) Gram matrices, by batched BLAS
     if embedding is None:
         dist = ((Xf[:, None, :] - Xf[cc]) ** 2).sum(axis=2)
     else:
@@ -163,6 +165,14 @@ def w_step(
     H[:, np.arange(cand.shape[1]), np.arange(cand.shape[1])] += diag
     # a row with D_ii = 0 carries no cost; any simplex point will do, keep the T-term ranking
     g = (lambda1 / (2.0 * np.where(D > 0, D, 1.0)))[:, None] * (1.0 - a[:, None]) * dist
-    w = solve_simplex_qp(H, g, mask)
+    warm = None
+    if start is not None:  # start's entries at (row, candidate), 0 where it has none
+        keys = np.repeat(np.arange(n), np.diff(start.indptr)) * n + start.indices
+        order = np.argsort(keys, kind="stable")
+        want = rows * n + cc.ravel()
+        at = np.minimum(np.searchsorted(keys, want, sorter=order), keys.size - 1)
+        hit = keys[order[at]] == want
+        warm = np.where(hit, start.data[order[at]], 0.0).reshape(cand.shape)
+    w = solve_simplex_qp(H, g, mask, start=warm)
     keep = mask & (w > 0)
     return sp.csr_matrix((w[keep], (np.nonzero(keep)[0], cc[keep])), shape=(n, n))
