@@ -70,6 +70,12 @@ def test_simplex_qp_matches_osqp(rng):
         ref = osqp_simplex(H[b][np.ix_(idx, idx)], g[b][idx])
         worst = max(worst, np.abs(ref - w[b, idx]).max())
     assert worst < 1e-8
+    # warm starts (the answer itself, a perturbed one, one outside the mask, none usable) end
+    # at the same optimum
+    far = rng.random((B, k)) * (rng.random((B, k)) < 0.5)
+    far[:3] = 0.0
+    for start in (w, np.abs(w + 0.1 * rng.standard_normal((B, k))), far, ~mask * 1.0):
+        assert np.abs(solve_simplex_qp(H, g, mask, start=start) - w).max() < 1e-10
 
 
 def small_capture(rng, n_per_stream=12, streams=3, p=6, motion=0.02):
@@ -431,6 +437,19 @@ def dense_x_step(W, D, prob, lambda1, lambda2):
             H, g = Q3 + P.toarray(), -P @ prob.C.ravel()
         X[:, j] = (c + B @ np.linalg.solve(H + reg * np.eye(len(H)), -g)).reshape(n, 3)
     return X
+
+
+def test_hard_x_step_in_groups_of_points_matches_one_group(rng, monkeypatch):
+    """With hard rays the points are solved in groups of about ``steps.BATCH`` entries: many
+    small groups give the one-group answer."""
+    cap, truth = small_capture(rng, n_per_stream=20, p=5)
+    cap.x[rng.random(cap.visible.shape) < 0.3] = np.nan
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    D = rng.uniform(0.5, 1.5, cap.num_images)
+    whole = x_step(prob.chain, D, prob, lambda1=0.05, lambda2=np.inf, X_prev=truth.X)
+    monkeypatch.setattr(steps, "BATCH", 50)
+    grouped = x_step(prob.chain, D, prob, lambda1=0.05, lambda2=np.inf, X_prev=truth.X)
+    assert np.abs(grouped - whole).max() < 1e-10 * (1 + np.abs(whole).max())
 
 
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])

@@ -218,7 +218,7 @@ def x_step(
     X = np.empty((n, p, 3))
     if np.isinf(lambda2):
         # points solved together: about BATCH of Q's entries over all of them
-        for c in np.array_split(np.arange(p), -(-p * qi.size // BATCH)):
+        for c in np.array_split(np.arange(p), min(p, max(1, -(-p * qi.size // BATCH)))):
             X[:, c] = _hard_points(Q, perm, qi, qk, q, r0[:, c], vis[:, c], prob.C, reg)
     else:
         width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)

@@ -166,7 +166,7 @@ def w_step(
     # a row with D_ii = 0 carries no cost; any simplex point will do, keep the T-term ranking
     g = (lambda1 / (2.0 * np.where(D > 0, D, 1.0)))[:, None] * (1.0 - a[:, None]) * dist
     warm = None
-    if start is not None:  # start's entries at (row, candidate), 0 where it has none
+    if start is not None and start.nnz:  # start's entries at (row, candidate), else 0
         keys = np.repeat(np.arange(n), np.diff(start.indptr)) * n + start.indices
         order = np.argsort(keys, kind="stable")
         want = rows * n + cc.ravel()
