@@ -281,12 +281,13 @@ def _hard_points(
     width = (sk - si + 2 * kinds[1]).max(axis=0, initial=0)
     banded = width <= np.maximum(BAND_WIDTH, np.sqrt(m))
 
+    a, b, qs = si.ravel(), sk.ravel(), np.broadcast_to(qq, si.shape).ravel()
+    dot = ((ri[..., 0] * rk[..., 0] + ri[..., 1] * rk[..., 1]) + ri[..., 2] * rk[..., 2]).ravel()
+
     def entries(pick: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """H's entries on and below the diagonal (rows >= cols) of the points ``pick`` (P,)."""
         at = [np.flatnonzero(kind & pick) for kind in kinds]  # flat (E, P) indices
-        a, b, qs = si.ravel(), sk.ravel(), np.broadcast_to(qq, si.shape).ravel()
-        dot = (ri[..., 0] * rk[..., 0] + ri[..., 1] * rk[..., 1]) + ri[..., 2] * rk[..., 2]
-        rows, cols, vals = [b[at[0]]], [a[at[0]]], [qs[at[0]] * dot.ravel()[at[0]]]
+        rows, cols, vals = [b[at[0]]], [a[at[0]]], [qs[at[0]] * dot[at[0]]]
         for t in range(3):
             rows += [b[at[1]] + t, b[at[2]], b[at[3]] + t]
             cols += [a[at[1]], a[at[2]] + t, a[at[3]] + t]

@@ -250,15 +250,16 @@ def timing(capture: dloe_sfm.Capture, result: dloe_sfm.Result, sync: dict, step:
     for s in np.unique(stream_ids):
         mine = stream_ids == s
         offset = float(np.median(error[mine])) - ref_error
+        true_offset = float(first[int(s)] - first[reference])
         clock = clocks["streams"].get(str(s))
         streams[str(camera[mine][0])] = {
             "images": int(mine.sum()),
-            "true_offset_frames": float(first[int(s)] - first[reference]),
+            "true_offset_frames": true_offset,
             "offset_error_frames": offset,
             "offset_error_stream_frames": offset / step,
             "offset_error_ms": 1000.0 * offset / FPS,
             "clock_offset_error_frames": None if clock is None else
-            clock["offset_frames"] - float(first[int(s)] - first[reference]),
+            clock["offset_frames"] - true_offset,
             "clock_rate": None if clock is None else clock["rate"],
         }
     return {
