@@ -62,17 +62,16 @@ def test_cameras_are_handheld_at_their_own_rates(field, truth):
 
 @pytest.mark.slow
 def test_default_reconstruction_against_the_oracle(field, tmp_path):
-    """Default options; measured (docs/field.md): 11.8 mm against an 11.1 mm oracle, worst image
-    1.6 x the median, tau 0.988, sync RMS 0.043 of a frame period. Six or seven frames per
-    camera leave the clocks' own-rate start noisy: this small sample misses the acceptance's
-    tau 0.99 and 1/30 period, which the five full field workspaces meet (docs/field.md)."""
+    """Default options; measured (docs/field.md): 12.1 mm against an 11.1 mm oracle, tau 0.994,
+    sync RMS 0.015 of a frame period, worst image 3.8 x the median (the capture's first frame,
+    which the chain extrapolates): the issue's four acceptance lines."""
     pipeline = load_pipeline()
     out = tmp_path / "dloe"
     pipeline.reconstruct_main(field, field / "keypoints.csv", "csv", out, plots=False)
     s = pipeline.score(field, out)
     assert s["images"] == 26 and s["images_without_points"] == 0
-    assert s["kendall_tau"] >= 0.98
+    assert s["kendall_tau"] >= pipeline.MIN_TAU
     assert s["error_mm"] <= pipeline.ORACLE_FACTOR * s["oracle_mm"] + pipeline.ORACLE_SLACK_MM
     assert s["error_aligned_mm"] <= 6.0
-    assert s["worst_over_median"] <= 2.5
-    assert s["sync_periods"] <= 0.05
+    assert s["worst_over_median"] <= pipeline.WORST_OVER_MEDIAN
+    assert s["sync_periods"] <= pipeline.MAX_SYNC_PERIODS

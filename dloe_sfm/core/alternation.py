@@ -336,19 +336,22 @@ def held_out_px(
     (``clocks.time_chain``, as the clocks place the points). The folds are observations
     (``noise.observation_folds``: the image's other points fix when it was taken, so the
     check is on the detections' noise), or with ``images`` whole images
-    (``noise.image_folds``, started from their stream neighbours' mean: the check is on
-    when each image was taken)."""
+    (``noise.image_folds``: the check is on when each image was taken). A held-out image starts
+    from the X-step on the chain along the model's own time line (the graph's: its sequencing
+    embedding), which links it to images of other streams: started from its own stream's
+    neighbours, whose points lie on the same camera's rays, the graph would be handed that
+    camera's view of the held-out instant (docs/method.md, "Stream clocks")."""
     norm = normalise(capture, options, X_world)
     prob = norm.problem
     X = norm.to_normal(X_world)
     if times is None:
         prior_f, f = sequence(X, prob, capture.frame, options)
-    else:
-        W, D_chain = time_chain(times)
+    W, D_chain = time_chain(np.ravel(f) if times is None else times)
     if images:
         fold = np.repeat(image_folds(prob.streams, capture.frame)[:, None], X.shape[1], axis=1)
         fold[~prob.visible] = -1
-        chained = (prob.chain @ X.reshape(X.shape[0], -1)).reshape(X.shape)
+        # points the chain leaves undetermined: from the stream neighbours' mean, not their own
+        fill = (prob.chain @ X.reshape(X.shape[0], -1)).reshape(X.shape)
     else:
         fold = observation_folds(prob.visible)
     out = np.full(fold.shape, np.nan)
@@ -357,15 +360,19 @@ def held_out_px(
         pk = replace(prob, weights=np.where(held, 0.0, prob.weights),
                      rays=np.where(held[..., None], np.nan, prob.rays))
         start = X
-        if images:
-            start = np.where(held.any(axis=1)[:, None, None], chained, X)
-        if times is None:
-            sk = Search(X=start.copy(), D=D.copy(), prior_f=prior_f, f=f, total=FOLD_SWEEPS)
-            alternate(sk, pk, capture.frame, options, Phase(lambda2, FOLD_SWEEPS))
-            Xk = sk.best.X
-        else:
-            Xk = x_step(W, D_chain, pk, lambda1=0.0, lambda2=lambda2, X_prev=start)
-        out[held] = residuals_px(capture, norm.to_world(Xk))[held]
+        if images or times is not None:
+            prev = X
+            if images:
+                outside = held.any(axis=1)[:, None, None]
+                prev = np.where(outside, fill, X)
+            chained = x_step(W, D_chain, pk, lambda1=0.0, lambda2=lambda2, X_prev=prev)
+            if times is not None:
+                out[held] = residuals_px(capture, norm.to_world(chained))[held]
+                continue
+            start = np.where(outside, chained, X)  # the graph's held-out images
+        sk = Search(X=start.copy(), D=D.copy(), prior_f=prior_f, f=f, total=FOLD_SWEEPS)
+        alternate(sk, pk, capture.frame, options, Phase(lambda2, FOLD_SWEEPS))
+        out[held] = residuals_px(capture, norm.to_world(sk.best.X))[held]
     return out[fold >= 0]
 
 

@@ -9,10 +9,12 @@ For given clocks every point's trajectory is fitted as a cubic B-spline in time 
 linear least squares (the residual is each observation's distance to its ray); the clocks that
 minimise that residual make the rays of different cameras agree. Variable projection: the
 spline coefficients are eliminated, the clocks go to Levenberg-Marquardt with the Kaufman
-Jacobian, after a coordinate grid over +-1/2 frame period per stream (the residual has local
-minima a sampling interval apart, and the fit alone can stop in one). The residual is summed
-over knot spacings of 2-5 sampling intervals of the merged streams: no single spacing suits
-every motion. The measurements behind these choices: docs/method.md, "Stream clocks".
+Jacobian. The residual has local minima a sampling interval apart, and the fit alone can stop in
+one: before it, the clocks are fitted on knots four times wider (where those minima smooth out,
+so a first guess periods off gets back), then the offsets searched on a grid over +-1/2 frame
+period per stream. The last fit's residual is summed over knot spacings of 2-5 sampling
+intervals of the merged streams: no single spacing suits every motion. The measurements
+behind these choices: docs/method.md, "Stream clocks".
 
 Cost: a spline fit is one banded Cholesky factorisation of the points' normal equations, linear
 in the observations (:class:`_SplineFit`); Levenberg-Marquardt sees the Kaufman Jacobian through
@@ -32,16 +34,28 @@ from scipy.optimize import least_squares
 
 SPACINGS = (2.0, 3.0, 4.0, 5.0)
 """Knot spacings in median sampling intervals of all streams merged."""
+REACH = 8
+"""A stream that the fit moves this many frame periods or more from its first guess (median over
+its images, against the others) is not pinned by the rays: the fit is refused."""
+COARSE_KNOTS = 4.0
+"""The first stage fits the clocks to the residual with knots this many times the middle spacing
+apart: its local minima a sampling interval apart smooth out, and a first guess several periods
+off (DLOE's placement of slow motion under detector errors: up to 5) comes back to the clocks'
+basin."""
 GRID_STEPS = 16
-"""Grid points per frame period of the coordinate search."""
+"""The second stage searches the offsets on a grid of this many points per frame period over
++-1/2 period."""
 GRID_POINTS = 8
-"""The grid's residual uses this many most-observed points, the fit after it all of them (a
-fraction of the cost, the same clocks: docs/method.md, "Stream clocks")."""
+"""The grids' residual uses at least this many most-observed points, the fit after them all
+of them..."""
+GRID_SLOTS = 8000
+"""...and as many as fit in this many (image, point) slots (all of them on a few hundred
+images; docs/method.md, "Stream clocks")..."""
+GRID_IMAGES = 2000
+"""...and the middle this many images in the first-guess time order (all of them in the fit)."""
 OUT_OF_RANGE = 1e150
 """The fit's cost at clocks that put an image before the splines' first knot (a wild trial step
 of Levenberg-Marquardt): far above any real cost, so the step is rejected and shortened."""
-GRID_IMAGES = 2000
-"""...and the middle this many images in the first-guess time order (all of them in the fit)."""
 
 
 def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
@@ -268,21 +282,22 @@ def fit_clocks(
 
     ``t0`` (N,) first-guess times (DTW placement), ``streams`` / ``frames`` (N,) with every
     image in a stream; ``E``, ``rhs`` from :func:`ray_equations`. The longest stream is the
-    reference (its first-guess start and rate are kept). The other streams' offsets are
-    searched on a grid of ``grid_steps`` per frame period (its residual on the ``grid_points``
-    most-observed points of the middle :data:`GRID_IMAGES` images) from two starts: the other
-    streams at the median of all streams' first-guess rates (the first guess of one stream's
-    rate is noisy on few images) and, unless ``shared_rate`` (all streams at the median), at
-    their own (streams filmed at different frame rates); the start whose grid ends lower is
-    fitted at those rates on all images, then, unless ``shared_rate``, with the rates freed
-    too.
+    reference (its first-guess start and rate are kept). The other streams start at the median
+    of all streams' first-guess rates (the first guess of one stream's rate is noisy on few
+    images) and, unless ``shared_rate`` (all streams at the median), at their own (streams
+    filmed at different frame rates), through their first-guess times. From each start, on the
+    most-observed points (at least ``grid_points``) of the middle :data:`GRID_IMAGES` images:
+    Levenberg-Marquardt on wide knots (:data:`COARSE_KNOTS`) fits the offsets, and apart the
+    offsets and rates (unless ``shared_rate``: freed rates can warp, held ones cannot follow a
+    stream whose rate is off), then a grid of ``grid_steps`` per frame period over +-1/2 period
+    moves the offsets. The candidate whose grid ends lower is fitted at those rates on all
+    images and points, then, unless ``shared_rate``, with the rates freed too.
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
-    they are too wide for fast motion). Returns None when the fit moved a stream by more than a
-    frame period against the others from ``t0`` (median over its images): the grid searches
-    half a period, so the rays did not pin the clocks. The measurements: docs/method.md,
-    "Stream clocks".
+    they are too wide for fast motion). Returns None when the fit moved a stream by
+    :data:`REACH` periods or more against the others from ``t0`` (median over its images): the
+    rays did not pin the clocks. The measurements: docs/method.md, "Stream clocks".
     """
     f = frames.astype(np.float64)
     ids, inv = np.unique(streams, return_inverse=True)
@@ -312,32 +327,72 @@ def fit_clocks(
     interval = float(np.median(np.diff(np.unique(t_init))))
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
     period = own[ref] * float(np.median(np.diff(np.unique(f[inv == ref]))))
-    start = min(float(times(x).min()) for x in starts) - 3 * period - max(hs)
-
     h_mid = hs[len(hs) // 2]
-    steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
-    seen = np.argsort(-visible.sum(axis=0), kind="stable")[:grid_points]
-    # the offsets are the same all along: the grid looks at the middle GRID_IMAGES images only
+    # the offsets are the same all along: the first stages look at the middle GRID_IMAGES only
     win = np.arange(t_init.size)
-    grid_start = start
     if t_init.size > GRID_IMAGES:
         lo = (t_init.size - GRID_IMAGES) // 2
         win = np.sort(np.argsort(t_init, kind="stable")[lo:lo + GRID_IMAGES])
-        grid_start = min(float(times(x)[win].min()) for x in starts) - 3 * period - max(hs)
+    reach = REACH * period
+    grid_start = min(float(times(x)[win].min()) for x in starts) - reach - COARSE_KNOTS * h_mid
+    seen = np.argsort(-visible.sum(axis=0), kind="stable")[:max(grid_points,
+                                                              GRID_SLOTS // win.size)]
     grid_rays = _rays(E[win][:, seen], rhs[win][:, seen], visible[win][:, seen])
 
-    def grid_residual(x: np.ndarray) -> float:
-        r = _SplineFit(times(x)[win], grid_rays, h_mid, grid_start).res
-        return float(r @ r)
+    def fitted(x: np.ndarray, cols: np.ndarray, fits: Callable[[np.ndarray], list[_SplineFit]],
+               rows: np.ndarray, first: float, norms: list[float],
+               known: list[_SplineFit] | None = None) -> np.ndarray:
+        """``x`` with its ``cols`` fitted by Levenberg-Marquardt to the residuals of ``fits``
+        (the spline fits at clocks z on images ``rows``, knots from ``first``), each over its
+        norm in ``norms``, seen through :func:`_condensed`. Fits are cached by ``x[cols]``,
+        starting with ``known``, the fits at ``x``."""
+        cache = {} if known is None else {x[cols].tobytes(): known}
+
+        def at(y: np.ndarray) -> list[_SplineFit]:
+            key = y.tobytes()
+            if key not in cache:
+                z = x.copy()
+                z[cols] = y
+                cache.clear()
+                cache[key] = fits(z)
+            return cache[key]
+
+        def squares(y: np.ndarray) -> float:
+            z = x.copy()
+            z[cols] = y
+            if times(z)[rows].min() < first:  # a trial step beyond the knots: rejected as worse
+                return OUT_OF_RANGE
+            return sum(float(f.res @ f.res) / n**2 for f, n in zip(at(y), norms, strict=True))
+
+        def jacobian(y: np.ndarray) -> np.ndarray:
+            grams = [f.gram(dt[rows][:, cols]) for f in at(y)]
+            jtj = sum(g / n**2 for (g, _), n in zip(grams, norms, strict=True))
+            jtr = sum(g / n**2 for (_, g), n in zip(grams, norms, strict=True))
+            return _condensed(jtj, jtr, squares(y))
+
+        sol = least_squares(lambda y: np.r_[np.zeros(cols.size), np.sqrt(squares(y))], x[cols],
+                            jac=jacobian, method="lm", xtol=1e-6, ftol=1e-8)
+        out = x.copy()
+        out[cols] = sol.x
+        return out
 
     def grid(x: np.ndarray) -> tuple[np.ndarray, float]:
         """Coordinate sweeps over the offsets from ``x`` until none moves: (x, residual)."""
-        value = grid_residual(x)
+
+        def residual(y: np.ndarray) -> float:
+            t = times(y)[win]
+            if t.min() < grid_start:  # a step beyond the knots
+                return np.inf
+            r = _SplineFit(t, grid_rays, h_mid, grid_start).res
+            return float(r @ r)
+
+        steps = (np.arange(grid_steps + 1) - grid_steps / 2) * period / grid_steps
+        value = residual(x)
         for _ in range(3):
             before = x.copy()
             for c in range(free.size):
                 trials = [x + d * (np.arange(x.size) == c) for d in steps]
-                values = [value if d == 0 else grid_residual(y)
+                values = [value if d == 0 else residual(y)
                           for d, y in zip(steps, trials, strict=True)]
                 best = int(np.argmin(values))
                 x, value = trials[best], values[best]
@@ -345,51 +400,31 @@ def fit_clocks(
                 break
         return x, value
 
-    x = min((grid(x) for x in starts), key=lambda found: found[1])[0]
-    rays = _rays(E, rhs, visible)
-    at_grid = [_SplineFit(times(x), rays, h, start) for h in hs]
-    norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
-
-    def refine(x: np.ndarray, cols: np.ndarray, cache: dict) -> np.ndarray:
-        """``x`` with its ``cols`` fitted by Levenberg-Marquardt to all spacings' residuals
-        (each over its norm at the grid's clocks), seen through :func:`_condensed`; ``cache``
-        maps ``x[cols].tobytes()`` to the fits at ``x`` when known."""
-
-        def fits(y: np.ndarray) -> list[_SplineFit]:
-            key = y.tobytes()
-            if key not in cache:
-                z = x.copy()
-                z[cols] = y
-                cache.clear()
-                cache[key] = [_SplineFit(times(z), rays, h, start) for h in hs]
-            return cache[key]
-
-        def squares(y: np.ndarray) -> float:
-            z = x.copy()
-            z[cols] = y
-            if times(z).min() < start:  # a trial step beyond the knots: rejected as worse
-                return OUT_OF_RANGE
-            return sum(float(f.res @ f.res) / n**2 for f, n in zip(fits(y), norms, strict=True))
-
-        def jacobian(y: np.ndarray) -> np.ndarray:
-            grams = [f.gram(dt[:, cols]) for f in fits(y)]
-            jtj = sum(g / n**2 for (g, _), n in zip(grams, norms, strict=True))
-            jtr = sum(g / n**2 for (_, g), n in zip(grams, norms, strict=True))
-            return _condensed(jtj, jtr, squares(y))
-
-        sol = least_squares(lambda y: np.r_[np.zeros(cols.size), np.sqrt(squares(y))], x[cols],
-                            jac=jacobian, method="lm", xtol=1e-8, ftol=1e-10)
-        out = x.copy()
-        out[cols] = sol.x
-        return out
+    def coarse(z: np.ndarray) -> list[_SplineFit]:
+        """The first stage's spline fit at clocks ``z``."""
+        return [_SplineFit(times(z)[win], grid_rays, COARSE_KNOTS * h_mid, grid_start)]
 
     offsets = np.arange(free.size)
-    x = refine(x, offsets, {x[offsets].tobytes(): at_grid})
+    freed = [offsets] if shared_rate else [offsets, np.arange(offsets.size * 2)]
+    found = [grid(fitted(x, cols, coarse, win, grid_start, [1.0]))
+             for x in starts for cols in freed]
+    x = min(found, key=lambda found: found[1])[0]
+    start = float(times(x).min()) - 3 * period - max(hs)
+    rays = _rays(E, rhs, visible)
+
+    def fine(z: np.ndarray) -> list[_SplineFit]:
+        """The last stage's spline fits at clocks ``z``: all images and points, every spacing."""
+        return [_SplineFit(times(z), rays, h, start) for h in hs]
+
+    everything = np.arange(t_init.size)
+    at_grid = fine(x)
+    norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
+    x = fitted(x, offsets, fine, everything, start, norms, at_grid)
     if not shared_rate:
-        x = refine(x, np.arange(x.size), {})
+        x = fitted(x, np.arange(x.size), fine, everything, start, norms)
     t = times(x)
     moved = np.abs(t - np.polyval(np.polyfit(t0, t, 1), t0))  # up to one map of the time line
-    return None if max(np.median(moved[inv == s]) for s in range(k)) > period else t
+    return None if max(np.median(moved[inv == s]) for s in range(k)) > reach else t
 
 
 def time_chain(times: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .capture import Capture
-from .clocks import clocks_hold, fit_clocks, ray_equations, time_chain
+from .clocks import REACH, clocks_hold, fit_clocks, ray_equations, time_chain
 from .events import segment_events
 from .noise import residual_floor_px
 from .options import AUTO, Clocks, Options, RobustLoss
@@ -284,8 +284,8 @@ def clocked(capture: Capture, options: Options, result: Result) -> Result:
         t = None if t0 is None else fit_clocks(t0, prob.streams, sub.frame, E, rhs, prob.visible,
                                                 shared_rate=options.shared_rate)
         if t is None:
-            logger.info("event %d: the rays do not pin the streams' clocks (one moved by more "
-                        "than a frame period); DLOE's graph is kept", e)
+            logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
+                        "frame periods or more); DLOE's graph is kept", e, REACH)
             continue
         auto = options.stream_clocks is Clocks.AUTO
         if auto and not clocks_predict(sub, options, X[idx], D[idx], t):
