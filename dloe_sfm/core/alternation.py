@@ -346,7 +346,8 @@ def held_out_px(
     X = norm.to_normal(X_world)
     if times is None:
         prior_f, f = sequence(X, prob, capture.frame, options)
-    W, D_chain = time_chain(np.ravel(f) if times is None else times)
+    if images or times is not None:  # the chain along the model's own time line
+        W, D_chain = time_chain(np.ravel(f) if times is None else times)
     if images:
         fold = np.repeat(image_folds(prob.streams, capture.frame)[:, None], X.shape[1], axis=1)
         fold[~prob.visible] = -1
