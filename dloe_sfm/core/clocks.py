@@ -347,6 +347,7 @@ def fit_clocks(
         norm in ``norms``, seen through :func:`_condensed`. Fits are cached by ``x[cols]``,
         starting with ``known``, the fits at ``x``."""
         cache = {} if known is None else {x[cols].tobytes(): known}
+        dt_fit = dt[rows][:, cols]
 
         def at(y: np.ndarray) -> list[_SplineFit]:
             key = y.tobytes()
@@ -365,7 +366,7 @@ def fit_clocks(
             return sum(float(f.res @ f.res) / n**2 for f, n in zip(at(y), norms, strict=True))
 
         def jacobian(y: np.ndarray) -> np.ndarray:
-            grams = [f.gram(dt[rows][:, cols]) for f in at(y)]
+            grams = [f.gram(dt_fit) for f in at(y)]
             jtj = sum(g / n**2 for (g, _), n in zip(grams, norms, strict=True))
             jtr = sum(g / n**2 for (_, g), n in zip(grams, norms, strict=True))
             return _condensed(jtj, jtr, squares(y))
