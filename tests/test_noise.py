@@ -13,6 +13,7 @@ from dloe_sfm.core.noise import (
     soft_wins,
 )
 from dloe_sfm.core.options import AUTO, Options
+from dloe_sfm.core.pipeline import soft_on_clocks
 from dloe_sfm.core.robust import predicted, residuals_px
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.errors import InputError
@@ -108,3 +109,16 @@ def test_detector_errors_are_solved_with_soft_rays_and_beat_hard_ones(assets_dir
         return point_errors(X, truth.X, cap.visible)["error_mm"]
 
     assert error(auto.X) < 0.8 * error(hard.X), (error(auto.X), error(hard.X))
+
+
+@pytest.mark.parametrize("noise", [0.0, 3.0])
+def test_soft_rays_along_the_clocks_only_for_noisy_detections(assets_dir, noise):
+    """``pipeline.soft_on_clocks`` along the true clocks of a hard-ray solve: 3 px detections get
+    soft rays at the level the graph's fit leaves (held-out images predicted better); exact ones
+    stay exact (the level their fit leaves is below ``noise.CHAIN_MIN_PX``)."""
+    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    cap, truth = simulate(seq, SimulationSettings(duration=1.5, noise=noise))
+    options = Options(noise_px=0.0, stream_clocks="off", robust_loss="none")
+    r = reconstruct(cap, options)
+    level = soft_on_clocks(cap, options, r.X, r.D, r.W, truth.t)
+    assert abs(level - noise) <= 0.25 * noise, level

@@ -38,22 +38,26 @@ def test_lab_rig(shared_dir, tmp_path) -> None:
     assert 8 < sync["reprojection_error_px"]["median"] < 18
     dloe = table["dloe_async"]
     assert dloe["images"] == 100
+    # default options: soft rays at the estimated noise along the stream clocks (13.65 px
+    # held out, 11.6 mm from the synchronised triangulation; hard rays: 21.0 px, 42.7 mm)
+    report = json.loads((out / "dloe" / "report.json").read_text())
+    assert 5 < report["solver"]["noise_px"] < 15
     held_dloe = dloe["held_out_views_error_px"]["median"]
     held_sync = sync["held_out_views_error_px (leave one camera out)"]["median"]
-    assert held_dloe < 1.5 * held_sync
-    assert table["dloe_vs_sync_distance_mm"]["median"] < 100
-    # timing against the true frames at default options: |tau| 0.966, offset errors up to
-    # 0.99 stream frame (cam03), RMS time error 1.8 frames
+    assert held_dloe < min(15.0, held_sync)
+    assert table["dloe_vs_sync_distance_mm"]["median"] < 20
+    # timing against the true frames: |tau| 0.9899, offset errors up to 0.19 stream frame
+    # (cam03), RMS time error 0.96 frames
     timing = table["timing"]
-    assert timing["kendall_tau"] >= 0.95
-    assert np.isfinite(timing["time_error_rms_frames"]) and timing["time_error_rms_frames"] < 4
+    assert timing["kendall_tau"] >= 0.985
+    assert np.isfinite(timing["time_error_rms_frames"]) and timing["time_error_rms_frames"] < 1.5
     assert set(timing["streams"]) == {"cam01", "cam02", "cam03", "cam04"}
     assert timing["streams"][timing["reference_camera"]]["offset_error_frames"] == 0
     for stream in timing["streams"].values():
         assert np.isfinite([stream["offset_error_frames"], stream["offset_error_stream_frames"],
                             stream["offset_error_ms"], stream["clock_offset_error_frames"],
                             stream["clock_rate"]]).all()
-        assert abs(stream["offset_error_stream_frames"]) < 2
+        assert abs(stream["offset_error_stream_frames"]) < 0.3
     assert len(table["acceptance"]) == 3
     assert len(list((out / "dloe" / "frames").glob("*.ply"))) == 100
     assert (out / "workspace" / "sparse" / "0" / "images.bin").is_file()

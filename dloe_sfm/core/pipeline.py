@@ -14,7 +14,7 @@ from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, 
 from .capture import Capture
 from .clocks import REACH, clocks_hold, fit_clocks, ray_equations, time_chain
 from .events import segment_events
-from .noise import residual_floor_px
+from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
@@ -55,10 +55,11 @@ def solve_single(
     init_seconds = time.perf_counter() - started
     result = solve_events(capture, options, labels, X_world, progress)
     result, solved = robust_rounds(capture, options, labels, result, progress)
-    if options.noise_px == AUTO:
+    auto_noise = options.noise_px == AUTO
+    if auto_noise:
         options = options.replace(noise_px=result.noise_px)
     if options.stream_clocks is not Clocks.OFF:
-        result = clocked(solved, options, result)
+        result = clocked(solved, options, result, auto_noise=auto_noise)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
     return replace(result, timings=timings, seconds=time.perf_counter() - started)
 
@@ -237,16 +238,20 @@ def robust_rounds(
 
 
 def clocks_predict(
-    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray
+    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
+    noise_px: float | None = None
 ) -> bool:
-    """Whether one event's clocks ``t`` predict held-out images' detections at least as well as
-    DLOE's graph (``clocks.clocks_hold``; ``alternation.held_out_px`` on at most
-    ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either way."""
+    """Whether one event's clocks ``t``, with the rays of ``noise_px`` (default the graph's,
+    ``options.noise_px``; 0: hard rays), predict held-out images' detections at least as well
+    as DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
+    most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either
+    way."""
     window, sub = middle_window(capture, t)
-    lambda2 = soft_ray_weight(capture, options)
-    graph = held_out_px(sub, options, X_world[window], D[window], lambda2, images=True)
-    clock = held_out_px(sub, options, X_world[window], D[window], lambda2, times=t[window],
-                        images=True)
+    graph = held_out_px(sub, options, X_world[window], D[window],
+                        soft_ray_weight(capture, options), images=True)
+    ticked = options if noise_px is None else options.replace(noise_px=noise_px)
+    clock = held_out_px(sub, ticked, X_world[window], D[window],
+                        soft_ray_weight(capture, ticked), times=t[window], images=True)
     keep = clocks_hold(graph, clock)
     logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
                 "px: %s", np.nanmedian(graph), np.nanmedian(clock),
@@ -254,7 +259,39 @@ def clocks_predict(
     return keep
 
 
-def clocked(capture: Capture, options: Options, result: Result) -> Result:
+def soft_on_clocks(
+    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, W_graph: sp.spmatrix,
+    t: np.ndarray
+) -> float:
+    """The detection noise (pixels) of one event placed on its clocks ``t`` whose graph solve
+    kept hard rays: the level the graph's fit ``W_graph`` leaves (``noise.estimate_noise_px``),
+    if it is at least ``noise.CHAIN_MIN_PX`` and soft rays at it predict held-out images,
+    chained along the clocks, better than hard rays (``noise.soft_wins``); else 0. Logged when
+    tried.
+
+    The graph's own check (``alternation.soft_checks_out``) holds out single detections: the
+    image's other points fix its shape, and the depth error along the camera's rays that hard
+    rays keep from noisy detections does not show. A held-out image is predicted from other
+    cameras' images, and their depth errors show in it (docs/method.md, "Held-out checks")."""
+    candidate = estimate_noise_px(residuals_px(capture, predicted(W_graph, X_world)))
+    if candidate < CHAIN_MIN_PX:
+        return 0.0
+    window, sub = middle_window(capture, t)
+    soft = options.replace(noise_px=candidate)
+    hard_px = held_out_px(sub, options, X_world[window], D[window], np.inf, times=t[window],
+                          images=True)
+    soft_px = held_out_px(sub, soft, X_world[window], D[window], soft_ray_weight(capture, soft),
+                          times=t[window], images=True)
+    wins = soft_wins(hard_px, soft_px)
+    logger.info("held-out images along the stream clocks, median residual: hard rays %.2f px, "
+                "soft rays at %.2f px noise %.2f px: %s", np.nanmedian(hard_px), candidate,
+                np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
+    return candidate if wins else 0.0
+
+
+def clocked(
+    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False
+) -> Result:
     """``result`` with every event that is filmed by videos (two or more streams of three or
     more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
     the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
@@ -262,13 +299,17 @@ def clocked(capture: Capture, options: Options, result: Result) -> Result:
     clocks. ``capture`` is the one the result was solved on (:func:`robust_rounds`); an event
     whose clocks the rays do not pin keeps DLOE's graph, and with ``stream_clocks`` ``auto`` so
     does one whose clocks predict held-out images worse than the graph
-    (:func:`clocks_predict`). ``clock`` holds the times.
+    (:func:`clocks_predict`). ``clock`` holds the times. With ``auto_noise`` (``noise_px`` was
+    ``auto``) and hard rays kept by the graph's check, a clocked event takes soft rays where the
+    clocks' held-out images ask for them (:func:`soft_on_clocks`; ``noise_px`` of the result is
+    then theirs).
     """
     t_start = time.perf_counter()
     n = capture.num_images
     X, D = result.X.copy(), result.D.copy()
     order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
     clock = np.full(n, np.nan)
+    noise_px = result.noise_px
     chains = []  # (data, rows, cols) of every clocked event's W
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
@@ -287,13 +328,17 @@ def clocked(capture: Capture, options: Options, result: Result) -> Result:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
             continue
+        noise = options.noise_px
+        if auto_noise and noise == 0:
+            noise = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
         auto = options.stream_clocks is Clocks.AUTO
-        if auto and not clocks_predict(sub, options, X[idx], D[idx], t):
+        if auto and not clocks_predict(sub, options, X[idx], D[idx], t, noise):
             continue
+        noise_px = max(noise_px, noise)
         # the chain's weights come from the time line: no compactness term (as the oracle)
         W, D[idx] = time_chain(t)
-        Xe = x_step(W, D[idx], prob, lambda1=0.0, lambda2=soft_ray_weight(sub, options),
-                    X_prev=Xe)
+        Xe = x_step(W, D[idx], prob, lambda1=0.0,
+                    lambda2=soft_ray_weight(sub, options.replace(noise_px=noise)), X_prev=Xe)
         X[idx], clock[idx] = norm.to_world(Xe), t
         chains.append(parts(W, idx))
         order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
@@ -307,4 +352,4 @@ def clocked(capture: Capture, options: Options, result: Result) -> Result:
     chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
     W = assemble(chains, n)
     return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
-                   order=order, embedding=embedding, timings=timings)
+                   order=order, embedding=embedding, timings=timings, noise_px=noise_px)
