@@ -120,5 +120,5 @@ def test_soft_rays_along_the_clocks_only_for_noisy_detections(assets_dir, noise)
     cap, truth = simulate(seq, SimulationSettings(duration=1.5, noise=noise))
     options = Options(noise_px=0.0, stream_clocks="off", robust_loss="none")
     r = reconstruct(cap, options)
-    level = soft_on_clocks(cap, options, r.X, r.D, r.W, truth.t)
+    level, _ = soft_on_clocks(cap, options, r.X, r.D, r.W, truth.t)
     assert abs(level - noise) <= 0.25 * noise, level

@@ -239,19 +239,20 @@ def robust_rounds(
 
 def clocks_predict(
     capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
-    noise_px: float | None = None
+    noise_px: float | None = None, clock: np.ndarray | None = None
 ) -> bool:
     """Whether one event's clocks ``t``, with the rays of ``noise_px`` (default the graph's,
     ``options.noise_px``; 0: hard rays), predict held-out images' detections at least as well
     as DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
     most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either
-    way."""
+    way. ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks` has them."""
     window, sub = middle_window(capture, t)
     graph = held_out_px(sub, options, X_world[window], D[window],
                         soft_ray_weight(capture, options), images=True)
-    ticked = options if noise_px is None else options.replace(noise_px=noise_px)
-    clock = held_out_px(sub, ticked, X_world[window], D[window],
-                        soft_ray_weight(capture, ticked), times=t[window], images=True)
+    if clock is None:
+        ticked = options if noise_px is None else options.replace(noise_px=noise_px)
+        clock = held_out_px(sub, ticked, X_world[window], D[window],
+                            soft_ray_weight(capture, ticked), times=t[window], images=True)
     keep = clocks_hold(graph, clock)
     logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
                 "px: %s", np.nanmedian(graph), np.nanmedian(clock),
@@ -262,12 +263,12 @@ def clocks_predict(
 def soft_on_clocks(
     capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, W_graph: sp.spmatrix,
     t: np.ndarray
-) -> float:
+) -> tuple[float, np.ndarray | None]:
     """The detection noise (pixels) of one event placed on its clocks ``t`` whose graph solve
     kept hard rays: the level the graph's fit ``W_graph`` leaves (``noise.estimate_noise_px``),
     if it is at least ``noise.CHAIN_MIN_PX`` and soft rays at it predict held-out images,
-    chained along the clocks, better than hard rays (``noise.soft_wins``); else 0. Logged when
-    tried.
+    chained along the clocks, better than hard rays (``noise.soft_wins``); else 0. With it, the
+    held-out residuals of the rays kept (None when the level was not tried). Logged when tried.
 
     The graph's own check (``alternation.soft_checks_out``) holds out single detections: the
     image's other points fix its shape, and the depth error along the camera's rays that hard
@@ -275,18 +276,18 @@ def soft_on_clocks(
     cameras' images, and their depth errors show in it (docs/method.md, "Held-out checks")."""
     candidate = estimate_noise_px(residuals_px(capture, predicted(W_graph, X_world)))
     if candidate < CHAIN_MIN_PX:
-        return 0.0
+        return 0.0, None
     window, sub = middle_window(capture, t)
     soft = options.replace(noise_px=candidate)
-    hard_px = held_out_px(sub, options, X_world[window], D[window], np.inf, times=t[window],
-                          images=True)
+    hard_px = held_out_px(sub, options, X_world[window], D[window],
+                          soft_ray_weight(capture, options), times=t[window], images=True)
     soft_px = held_out_px(sub, soft, X_world[window], D[window], soft_ray_weight(capture, soft),
                           times=t[window], images=True)
     wins = soft_wins(hard_px, soft_px)
     logger.info("held-out images along the stream clocks, median residual: hard rays %.2f px, "
                 "soft rays at %.2f px noise %.2f px: %s", np.nanmedian(hard_px), candidate,
                 np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
-    return candidate if wins else 0.0
+    return (candidate, soft_px) if wins else (0.0, hard_px)
 
 
 def clocked(
@@ -328,11 +329,11 @@ def clocked(
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
             continue
-        noise = options.noise_px
+        noise, held = options.noise_px, None
         if auto_noise and noise == 0:
-            noise = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
+            noise, held = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
         auto = options.stream_clocks is Clocks.AUTO
-        if auto and not clocks_predict(sub, options, X[idx], D[idx], t, noise):
+        if auto and not clocks_predict(sub, options, X[idx], D[idx], t, noise, held):
             continue
         noise_px = max(noise_px, noise)
         # the chain's weights come from the time line: no compactness term (as the oracle)
