@@ -7,6 +7,7 @@ from dloe_sfm.core.clocks import (
     _cubic_bspline,
     _rays,
     _SplineFit,
+    as_good_share,
     clocks_hold,
     fit_clocks,
     ray_equations,
@@ -175,6 +176,20 @@ def test_held_out_check_keeps_clocks_that_predict_at_least_as_well():
     graph = np.array([2.0, 3.0, 4.0, np.nan])
     assert clocks_hold(graph, graph) and clocks_hold(graph, graph * 0.9)
     assert not clocks_hold(graph, graph * 1.05)
+
+
+def test_held_out_check_gives_ties_to_the_clocks():
+    """A median a hair above the graph's still keeps clocks that predict half of the detections
+    at least as well (both at the floor of exact data); a majority the graph predicts better
+    drops them. The share counts the detections both models predicted."""
+    graph = np.array([0.05, 0.08, 0.09, 0.30])
+    tie = np.array([0.04, 0.07, 0.11, 0.31])
+    assert np.median(tie) > np.median(graph)
+    assert as_good_share(graph, tie) == 0.5 and clocks_hold(graph, tie)
+    worse = np.array([0.04, 0.09, 0.11, 0.31])
+    assert as_good_share(graph, worse) == 0.25 and not clocks_hold(graph, worse)
+    assert as_good_share(np.r_[graph, np.nan], np.r_[worse, 0.0]) == 0.25
+    assert as_good_share(graph, np.full(4, np.nan)) == 0.0
 
 
 def test_held_out_images_keep_true_clocks_and_drop_a_shifted_one(sparse_walk):

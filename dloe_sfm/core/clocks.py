@@ -59,9 +59,21 @@ of Levenberg-Marquardt): far above any real cost, so the step is rejected and sh
 
 
 def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
-    """Whether the clocks predict held-out images' detections (pixels, NaN ignored) at least as
-    well as DLOE's graph (median residual; ``alternation.held_out_px``)."""
-    return bool(np.nanmedian(clock_px) <= np.nanmedian(graph_px))
+    """Whether the clocks predict held-out images' detections at least as well as DLOE's graph:
+    a median residual at most the graph's, or at least half of the detections predicted at least
+    as well. ``graph_px``, ``clock_px``: the same detections' residuals, pixels, NaN ignored
+    (``alternation.held_out_px``). Ties go to the clocks, a few numbers per stream against a
+    graph's weights per image: on exact data both models predict at the floor the cameras leave,
+    where the medians alone decided by chance (docs/method.md, "Held-out checks")."""
+    return bool(np.nanmedian(clock_px) <= np.nanmedian(graph_px)
+                or as_good_share(graph_px, clock_px) >= 0.5)
+
+
+def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:
+    """Share of the detections with both residuals (pixels) that the clocks predict at least as
+    well as the graph (0 with none)."""
+    both = np.isfinite(graph_px) & np.isfinite(clock_px)
+    return float(np.mean(clock_px[both] <= graph_px[both])) if both.any() else 0.0
 
 
 def ray_equations(

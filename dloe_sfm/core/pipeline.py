@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .capture import Capture
-from .clocks import REACH, clocks_hold, fit_clocks, ray_equations, time_chain
+from .clocks import REACH, as_good_share, clocks_hold, fit_clocks, ray_equations, time_chain
 from .events import segment_events
 from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
 from .options import AUTO, Clocks, Options, RobustLoss
@@ -255,7 +255,8 @@ def clocks_predict(
                             soft_ray_weight(capture, ticked), times=t[window], images=True)
     keep = clocks_hold(graph, clock)
     logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
-                "px: %s", np.nanmedian(graph), np.nanmedian(clock),
+                "px, at least as good on %.0f %% of them: %s", np.nanmedian(graph),
+                np.nanmedian(clock), 100 * as_good_share(graph, clock),
                 "clocks kept" if keep else "the clocks fail, DLOE's graph is kept")
     return keep
 
