@@ -62,9 +62,10 @@ def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
     """Whether the clocks predict held-out images' detections at least as well as DLOE's graph:
     a median residual at most the graph's, or at least half of the detections predicted at least
     as well. ``graph_px``, ``clock_px``: the same detections' residuals, pixels, NaN ignored
-    (``alternation.held_out_px``). Ties go to the clocks, a few numbers per stream against a
-    graph's weights per image: on exact data both models predict at the floor the cameras leave,
-    where the medians alone decided by chance (docs/method.md, "Held-out checks")."""
+    (``alternation.held_out_px``). Ties go to the clocks, a few numbers per stream where the
+    graph has weights for every image: on exact data both models predict at the floor the
+    cameras leave, where the medians alone decide by chance (docs/method.md, "Held-out
+    checks")."""
     return bool(np.nanmedian(clock_px) <= np.nanmedian(graph_px)
                 or as_good_share(graph_px, clock_px) >= 0.5)
 
