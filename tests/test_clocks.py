@@ -8,6 +8,7 @@ from dloe_sfm.core.clocks import (
     _rays,
     _SplineFit,
     as_good_share,
+    chain_predicted,
     clocks_hold,
     fit_clocks,
     ray_equations,
@@ -43,6 +44,16 @@ def test_time_chain_reproduces_constant_velocity():
     assert np.allclose((W @ t) * D, t * D)  # every inner row interpolates its own time exactly
     assert D[[1, 4]].tolist() == [0.0, 0.0] and np.allclose(W.sum(axis=1).A.ravel(), 1.0)
     assert W[1, 3] == 1.0 and W[4, 2] == 1.0  # the ends' rows: their one neighbour
+
+
+def test_chain_prediction_extrapolates_the_ends():
+    """Linear motion is predicted exactly from the neighbours along the times, the first and
+    last image included (the chain's own end rows would repeat their one neighbour)."""
+    t = np.array([0.3, 0.0, 0.5, 0.1, 0.9])
+    X = (2.0 * t - 1.0)[:, None, None] * np.array([1.0, -0.5, 3.0])
+    assert np.allclose(chain_predicted(t, X), X)
+    W, _ = time_chain(t)
+    assert not np.allclose((W @ X.reshape(5, 3)).reshape(X.shape)[[1, 4]], X[[1, 4]])
 
 
 def test_spline_residuals_match_a_dense_solve(rng):

@@ -461,3 +461,24 @@ def time_chain(times: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
     D = np.ones(n)
     D[order[[0, -1]]] = 0.0
     return W, D
+
+
+def chain_predicted(times: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """(N, P, 3) every image's shapes ``X`` predicted from its neighbours along ``times``: the
+    chain's barycentric interpolation inside; the first two and the last two images by linear
+    extrapolation from the next two inwards. The chain's end images have no row of their own
+    (D = 0): a point they do not observe is placed by their neighbour's row alone, so it would
+    predict that neighbour by its own observation, a wrong one included."""
+    W, _ = time_chain(times)
+    n = X.shape[0]
+    pred = np.asarray(W @ X.reshape(n, -1)).reshape(X.shape)
+    if n < 4:
+        return pred
+    order = np.argsort(times, kind="stable")
+    for end in (order[:4], order[::-1][:4]):
+        b, c = end[2], end[3]
+        step = times[b] - times[c]
+        for a in end[:2]:
+            s = (times[a] - times[b]) / step if step != 0 else 0.0
+            pred[a] = X[b] + s * (X[b] - X[c])
+    return pred

@@ -12,12 +12,20 @@ import scipy.sparse as sp
 
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .capture import Capture
-from .clocks import REACH, as_good_share, clocks_hold, fit_clocks, ray_equations, time_chain
+from .clocks import (
+    REACH,
+    as_good_share,
+    chain_predicted,
+    clocks_hold,
+    fit_clocks,
+    ray_equations,
+    time_chain,
+)
 from .events import segment_events
 from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
-from .problem import assemble, initialise, normalise, parts
+from .problem import Normalised, assemble, build_problem, initialise, normalise, parts
 from .result import Result, merged_history
 from .robust import (
     apply_swaps,
@@ -59,7 +67,11 @@ def solve_single(
     if auto_noise:
         options = options.replace(noise_px=result.noise_px)
     if options.stream_clocks is not Clocks.OFF:
-        result = clocked(solved, options, result, auto_noise=auto_noise)
+        # the rounds' verdict is revisited where they found wrong detections
+        checked = None
+        if result.outliers.size or result.swaps.size:
+            checked = result.solved if result.swaps.size else capture
+        result = clocked(solved, options, result, auto_noise=auto_noise, checked=checked)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
     return replace(result, timings=timings, seconds=time.perf_counter() - started)
 
@@ -292,7 +304,8 @@ def soft_on_clocks(
 
 
 def clocked(
-    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False
+    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
+    checked: Capture | None = None
 ) -> Result:
     """``result`` with every event that is filmed by videos (two or more streams of three or
     more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
@@ -304,7 +317,10 @@ def clocked(
     (:func:`clocks_predict`). ``clock`` holds the times. With ``auto_noise`` (``noise_px`` was
     ``auto``) and hard rays kept by the graph's check, a clocked event takes soft rays where the
     clocks' held-out images ask for them (:func:`soft_on_clocks`; ``noise_px`` of the result is
-    then theirs).
+    then theirs). With ``checked`` (the capture before the robust weights, swaps undone) the
+    observations of every event with fitted clocks are judged again against the chain along
+    them (:func:`robust_on_clocks`) before the held-out check, which then judges both models
+    on that verdict; ``outliers`` follow the events that keep their clocks.
     """
     t_start = time.perf_counter()
     n = capture.num_images
@@ -313,6 +329,11 @@ def clocked(
     clock = np.full(n, np.nan)
     noise_px = result.noise_px
     chains = []  # (data, rows, cols) of every clocked event's W
+    rejected = np.zeros(capture.x.shape[:2], dtype=bool)
+    residual = np.full(capture.x.shape[:2], np.nan)
+    if result.outliers.size:
+        rejected[tuple(result.outliers.T)] = True
+        residual[tuple(result.outliers.T)] = result.outlier_residual_px
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
         ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
@@ -333,14 +354,22 @@ def clocked(
         noise, held = options.noise_px, None
         if auto_noise and noise == 0:
             noise, held = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
+        ticked = options.replace(noise_px=noise)
+        # the chain's weights come from the time line: no compactness term (as the oracle)
+        W, D_e = time_chain(t)
+        Xe = x_step(W, D_e, prob, lambda1=0.0, lambda2=soft_ray_weight(sub, ticked), X_prev=Xe)
+        judged, rej_e, res_e = sub, rejected[idx], residual[idx]
+        if checked is not None:
+            csub = checked.subset(idx) if idx.size < n else checked
+            t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(csub, ticked, norm, t, Xe,
+                                                                   rej_e)
+            if weights is not None:  # both models are judged on the clocks' verdict
+                judged, held = reweighted(csub, weights), None
         auto = options.stream_clocks is Clocks.AUTO
-        if auto and not clocks_predict(sub, options, X[idx], D[idx], t, noise, held):
+        if auto and not clocks_predict(judged, options, X[idx], D[idx], t, noise, held):
             continue
         noise_px = max(noise_px, noise)
-        # the chain's weights come from the time line: no compactness term (as the oracle)
-        W, D[idx] = time_chain(t)
-        Xe = x_step(W, D[idx], prob, lambda1=0.0,
-                    lambda2=soft_ray_weight(sub, options.replace(noise_px=noise)), X_prev=Xe)
+        D[idx], rejected[idx], residual[idx] = D_e, rej_e, res_e
         X[idx], clock[idx] = norm.to_world(Xe), t
         chains.append(parts(W, idx))
         order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
@@ -353,5 +382,56 @@ def clocked(
     dloe = np.isnan(clock)[coo.row]  # rows of the events left to DLOE's graph
     chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
     W = assemble(chains, n)
+    if checked is not None:
+        img, col = np.nonzero(rejected)
+        result = replace(result, outliers=np.stack([img, col], axis=1).astype(np.int64),
+                         outlier_residual_px=residual[img, col])
     return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
                    order=order, embedding=embedding, timings=timings, noise_px=noise_px)
+
+
+def robust_on_clocks(
+    capture: Capture, options: Options, norm: Normalised, t: np.ndarray, X: np.ndarray,
+    rejected: np.ndarray
+) -> tuple[
+    np.ndarray, sp.csr_matrix, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None
+]:
+    """One clocked event's observations judged again against its clocks ``t``: the robust
+    rounds judged them by DLOE's graph, and the event's points now come from the chain along
+    the clocks. Every observation of ``capture`` (the event before the robust weights, swaps
+    undone) is predicted from its neighbours along the clocks (``clocks.chain_predicted``),
+    weighted by the robust loss of its residual as in :func:`robust_rounds`, and the points
+    placed again by the X-step on the chain, until the rejected set holds (at most
+    ``robust_iterations`` times). A wrong detection the graph missed is pinned to its ray with
+    exact detections (``noise_px`` 0) and bent the clock fit: the first time such a one is
+    rejected, the clocks are fitted again without it (kept if the rays pin them).
+
+    ``X`` (N, P, 3) in ``norm``'s frame, ``rejected`` (N, P) the robust rounds' verdict.
+    Returns the clocks, the chain's W and D, the points, the rejected set, the residuals in
+    pixels (NaN where unobserved) and the observation weights the points were placed with
+    (None when the rounds' verdict held)."""
+    lambda2 = soft_ray_weight(capture, options)
+    W, D = time_chain(t)
+    used = None
+    refit = options.noise_px == 0
+    res = residuals_px(capture, chain_predicted(t, norm.to_world(X)))
+    for _ in range(options.robust_iterations):
+        weights = loss_weights(res, loss_scale(res, options.robust_scale_px), options.robust_loss)
+        now = (weights < 0.5) & capture.visible
+        if (now == rejected).all() or now.sum() > 0.5 * capture.visible.sum():
+            break
+        logger.info("robust check on the stream clocks: %d observation(s) rejected, %d admitted "
+                    "again", int((now & ~rejected).sum()), int((rejected & ~now).sum()))
+        prob = build_problem(reweighted(capture, weights), options, norm.origin, norm.scale)
+        if refit and (now & ~rejected).any():
+            refit = False
+            E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+            fitted = fit_clocks(t, prob.streams, capture.frame, E, rhs, prob.visible,
+                                shared_rate=options.shared_rate)
+            if fitted is not None:
+                t = fitted
+                W, D = time_chain(t)
+        rejected, used = now, weights
+        X = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2, X_prev=X)
+        res = residuals_px(capture, chain_predicted(t, norm.to_world(X)))
+    return t, W, D, X, rejected, res, used

@@ -1,7 +1,8 @@
 """Check the several-events / several-people / robust-observation targets on the shared mocap.
 
 Four cases, each simulated with the project's own simulator (``dloe_sfm.synth.scenarios``) and
-solved with the default options (plus the case's noise level):
+solved with the default options (the solver estimates the noise level; ``--told-noise``: told the
+simulated one, as the figures before commit 05a07ab):
 
 - events: three clips of different motions filmed one after another by the same 4 streams;
   event purity, and every clip's error against solving that clip alone (target <= 1.2 x);
@@ -13,6 +14,7 @@ solved with the default options (plus the case's noise level):
 - swaps: 10 % of the left/right pairs swapped; swaps found (target >= 95 %).
 
     python pipelines/scenarios/pipeline.py [--data ../shared/data/mocap] [--out outputs/scenarios]
+        [--told-noise]
 
 Prints a table, writes ``scenarios.json`` (every run, settings, machine) and ``scenarios.png``.
 """
@@ -65,6 +67,11 @@ def _settings(noise: float, duration: float, seed: int) -> SimulationSettings:
     return SimulationSettings(duration=duration, noise=noise, seed=seed)
 
 
+def _options(noise: float, told: bool) -> Options:
+    """The default options; with ``told`` the simulated noise level as ``noise_px``."""
+    return Options(noise_px=noise) if told else Options()
+
+
 def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Simulated:
     """One person at the ring's centre, as in the people case, as a one-subject capture."""
     cap, truth = simulate_people([seq], settings, shuffle=False)
@@ -74,10 +81,11 @@ def _one_person(seq: MocapSequence, settings: SimulationSettings) -> Simulated:
     )
 
 
-def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int) -> dict:
+def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int,
+               told: bool) -> dict:
     seqs = [load_mocap(resolve_motion(data, m)) for m in mix]
     cap, sim = simulate_events(seqs, _settings(noise, duration, seed))
-    opts = Options(noise_px=noise)
+    opts = _options(noise, told)
     tic = time.perf_counter()
     r = reconstruct(cap, opts)
     sec = time.perf_counter() - tic
@@ -96,10 +104,11 @@ def run_events(data: Path, mix: tuple, noise: float, duration: float, seed: int)
     return row
 
 
-def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int) -> dict:
+def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int,
+               told: bool) -> dict:
     seqs = [load_mocap(resolve_motion(data, m)) for m in pair]
     cap, sim = simulate_people(seqs, _settings(noise, duration, seed))
-    opts = Options(noise_px=noise)
+    opts = _options(noise, told)
     tic = time.perf_counter()
     r = reconstruct(cap, opts)
     sec = time.perf_counter() - tic
@@ -124,13 +133,14 @@ def run_people(data: Path, pair: tuple, noise: float, duration: float, seed: int
     return row
 
 
-def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
+def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: int,
+                 told: bool) -> dict:
     seq = load_mocap(resolve_motion(data, motion))
     cap, sim = _one_person(seq, _settings(noise, duration, seed))
     X_true = sim.X
     bad, sim = add_outliers(cap, sim, 0.05, seed=seed + 1)
     truth = sim.outliers
-    opts = Options(noise_px=noise)
+    opts = _options(noise, told)
     clean = _error(reconstruct(cap, opts).X, X_true)
     tic = time.perf_counter()
     r = reconstruct(bad, opts)
@@ -149,13 +159,14 @@ def run_outliers(data: Path, motion: str, noise: float, duration: float, seed: i
     return row
 
 
-def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int) -> dict:
+def run_swaps(data: Path, motion: str, noise: float, duration: float, seed: int,
+              told: bool) -> dict:
     seq = load_mocap(resolve_motion(data, motion))
     cap, sim = _one_person(seq, _settings(noise, duration, seed))
     pairs = symmetric_pairs(seq.parents)
     bad, sim = swap_symmetric(cap, sim, pairs, 0.1, seed=seed + 2)
     truth = sim.swaps
-    opts = Options(noise_px=noise)
+    opts = _options(noise, told)
     clean = _error(reconstruct(cap, opts).X, sim.X)
     tic = time.perf_counter()
     r = reconstruct(bad, opts)
@@ -232,8 +243,8 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 
 def main(data: Path, out: Path, cases: list[str], duration: float, seed: int,
-         jobs: int) -> list[dict]:
-    tasks = [(CASES[c][0], data, item, noise, duration, seed)
+         jobs: int, told: bool = False) -> list[dict]:
+    tasks = [(CASES[c][0], data, item, noise, duration, seed, told)
              for c in cases for item in CASES[c][1] for noise in NOISE]
     rows = []
     with ProcessPoolExecutor(max_workers=jobs) as pool:
@@ -242,7 +253,7 @@ def main(data: Path, out: Path, cases: list[str], duration: float, seed: int,
             rows.append(f.result())
             print(_describe(rows[-1]), flush=True)
     out.mkdir(parents=True, exist_ok=True)
-    meta = {"machine": machine_info(), "duration_s": duration, "seed": seed,
+    meta = {"machine": machine_info(), "duration_s": duration, "seed": seed, "told_noise": told,
             "streams": "4 x 30 Hz", "options": Options().to_dict()}
     (out / "scenarios.json").write_text(json.dumps({"meta": meta, "runs": rows}, indent=2))
     plot(rows, out / "scenarios.png")
@@ -261,6 +272,8 @@ if __name__ == "__main__":
     p.add_argument("--duration", type=float, default=3.0, help="seconds of each clip")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--told-noise", action="store_true",
+                   help="tell the solver the simulated noise (noise_px) instead of estimating it")
     a = p.parse_args()
-    result = main(a.data, a.out, a.cases, a.duration, a.seed, a.jobs)
+    result = main(a.data, a.out, a.cases, a.duration, a.seed, a.jobs, a.told_noise)
     print(f"{sum(r['pass'] for r in result)} passed, {sum(not r['pass'] for r in result)} failed")
