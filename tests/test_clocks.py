@@ -51,8 +51,8 @@ def test_chain_prediction_extrapolates_the_ends():
     last image included (the chain's own end rows would repeat their one neighbour)."""
     t = np.array([0.3, 0.0, 0.5, 0.1, 0.9])
     X = (2.0 * t - 1.0)[:, None, None] * np.array([1.0, -0.5, 3.0])
-    assert np.allclose(chain_predicted(t, X), X)
     W, _ = time_chain(t)
+    assert np.allclose(chain_predicted(W, t, X), X)
     assert not np.allclose((W @ X.reshape(5, 3)).reshape(X.shape)[[1, 4]], X[[1, 4]])
 
 

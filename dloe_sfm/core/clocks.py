@@ -32,6 +32,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.optimize import least_squares
 
+from .robust import predicted
+
 SPACINGS = (2.0, 3.0, 4.0, 5.0)
 """Knot spacings in median sampling intervals of all streams merged."""
 REACH = 8
@@ -463,16 +465,15 @@ def time_chain(times: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
     return W, D
 
 
-def chain_predicted(times: np.ndarray, X: np.ndarray) -> np.ndarray:
+def chain_predicted(W: sp.spmatrix, times: np.ndarray, X: np.ndarray) -> np.ndarray:
     """(N, P, 3) every image's shapes ``X`` predicted from its neighbours along ``times``: the
-    chain's barycentric interpolation inside; the first two and the last two images by linear
-    extrapolation from the next two inwards. The chain's end images have no row of their own
-    (D = 0): a point they do not observe is placed by their neighbour's row alone, so it would
-    predict that neighbour by its own observation, a wrong one included."""
-    W, _ = time_chain(times)
-    n = X.shape[0]
-    pred = np.asarray(W @ X.reshape(n, -1)).reshape(X.shape)
-    if n < 4:
+    barycentric interpolation of ``W``, the chain along them (:func:`time_chain`), inside; the
+    first two and the last two images by linear extrapolation from the next two inwards. The
+    chain's end images have no row of their own (D = 0): a point they do not observe is placed
+    by their neighbour's row alone, so it would predict that neighbour by its own observation,
+    a wrong one included."""
+    pred = predicted(W, X)
+    if X.shape[0] < 4:
         return pred
     order = np.argsort(times, kind="stable")
     for end in (order[:4], order[::-1][:4]):

@@ -37,7 +37,7 @@ from .robust import (
     reweighted,
 )
 from .sequencing import affine_time
-from .steps import x_step
+from .steps import Problem, x_step
 from .wstep import select_candidates, w_step
 
 logger = logging.getLogger("dloe_sfm")
@@ -303,6 +303,16 @@ def soft_on_clocks(
     return (candidate, soft_px) if wins else (0.0, hard_px)
 
 
+def event_clocks(
+    t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options
+) -> np.ndarray | None:
+    """One event's stream clocks fitted to the rays of ``prob`` from the first guess ``t0``
+    (``clocks.fit_clocks``; ``options.shared_rate``); None where the rays do not pin them."""
+    E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+    return fit_clocks(t0, prob.streams, frame, E, rhs, prob.visible,
+                      shared_rate=options.shared_rate)
+
+
 def clocked(
     capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
     checked: Capture | None = None
@@ -344,9 +354,7 @@ def clocked(
         prob = norm.problem
         Xe = norm.to_normal(X[idx])
         t0 = affine_time(Xe, prob.streams, sub.frame)
-        E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
-        t = None if t0 is None else fit_clocks(t0, prob.streams, sub.frame, E, rhs, prob.visible,
-                                                shared_rate=options.shared_rate)
+        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
@@ -414,7 +422,7 @@ def robust_on_clocks(
     W, D = time_chain(t)
     used = None
     refit = options.noise_px == 0
-    res = residuals_px(capture, chain_predicted(t, norm.to_world(X)))
+    res = residuals_px(capture, chain_predicted(W, t, norm.to_world(X)))
     for _ in range(options.robust_iterations):
         weights = loss_weights(res, loss_scale(res, options.robust_scale_px), options.robust_loss)
         now = (weights < 0.5) & capture.visible
@@ -425,13 +433,11 @@ def robust_on_clocks(
         prob = build_problem(reweighted(capture, weights), options, norm.origin, norm.scale)
         if refit and (now & ~rejected).any():
             refit = False
-            E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
-            fitted = fit_clocks(t, prob.streams, capture.frame, E, rhs, prob.visible,
-                                shared_rate=options.shared_rate)
+            fitted = event_clocks(t, prob, capture.frame, options)
             if fitted is not None:
                 t = fitted
                 W, D = time_chain(t)
         rejected, used = now, weights
         X = x_step(W, D, prob, lambda1=0.0, lambda2=lambda2, X_prev=X)
-        res = residuals_px(capture, chain_predicted(t, norm.to_world(X)))
+        res = residuals_px(capture, chain_predicted(W, t, norm.to_world(X)))
     return t, W, D, X, rejected, res, used
