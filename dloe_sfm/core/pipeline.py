@@ -426,7 +426,12 @@ def robust_on_clocks(
     for _ in range(options.robust_iterations):
         weights = loss_weights(res, loss_scale(res, options.robust_scale_px), options.robust_loss)
         now = (weights < 0.5) & capture.visible
-        if (now == rejected).all() or now.sum() > 0.5 * capture.visible.sum():
+        if (now == rejected).all():
+            break
+        if now.sum() > 0.5 * capture.visible.sum():
+            logger.warning("robust check on the stream clocks not taken: it would drop %d of %d "
+                           "observations; the previous verdict stands", int(now.sum()),
+                           int(capture.visible.sum()))
             break
         logger.info("robust check on the stream clocks: %d observation(s) rejected, %d admitted "
                     "again", int((now & ~rejected).sum()), int((rejected & ~now).sum()))
