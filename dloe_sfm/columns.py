@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .core.bias import without_offsets
 from .core.capture import Capture
 from .core.result import Result
 
@@ -34,8 +35,13 @@ def frame_file_stem(rank: int, image_name: str, num_images: int) -> str:
 
 def solved_capture(capture: Capture, result: Result) -> Capture:
     """The (N, P', 2) observations ``result.X`` refers to: ``result.solved`` when the solver
-    made one (subjects aggregated, left/right swaps undone), else ``capture`` itself."""
-    return capture if result.solved is None else result.solved
+    made one (subjects aggregated, left/right swaps undone, stream offsets taken out), else
+    ``capture`` itself, less ``result.offset_px`` when a result file holds them."""
+    if result.solved is not None:
+        return result.solved
+    if result.offset_px is not None and result.offset_px.shape == capture.x.shape:
+        return without_offsets(capture, result.offset_px)
+    return capture
 
 
 def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:

@@ -184,6 +184,25 @@ def _robust_report(capture: Capture, result: Result, subject_id: np.ndarray,
             "swaps_fixed": {"count": len(swaps), "swaps": swaps}}
 
 
+def _offset_report(capture: Capture, result: Result, subject_id: np.ndarray,
+                   point_id: np.ndarray, point_names: list[str]) -> dict:
+    """Each stream's pixel offset of each point taken out of its detections
+    (``Result.offset_px``, ``core.bias``), by name; empty when none was."""
+    offsets = []
+    if result.offset_px is not None:
+        stream = capture.stream_ids
+        for s in np.unique(stream):
+            shift = np.median(result.offset_px[stream == s], axis=0)  # (P', 2)
+            for k in np.flatnonzero(np.abs(shift).sum(axis=1) > 0):
+                offsets.append({"stream": int(s), "point": point_names[point_id[k]],
+                                "subject_id": int(subject_id[k]),
+                                "offset_px": [float(shift[k, 0]), float(shift[k, 1])]})
+    size = [float(np.hypot(*o["offset_px"])) for o in offsets]
+    return {"stream_offsets": {"count": len(offsets),
+                               "median_px": float(np.median(size)) if size else None,
+                               "offsets": offsets}}
+
+
 def supported_points(result: Result) -> np.ndarray:
     """(N, P) X with NaN where the data do not support a point (``Result.supported``: unobserved
     and weakly determined, or in an ``inconsistent`` image); X as is without the check."""
@@ -241,6 +260,9 @@ def _check_shapes(capture: Capture, result: Result) -> None:
         rows = np.asarray(getattr(result, name)).reshape(-1, width)
         if (rows < 0).any() or (rows[:, 0] >= n).any() or (rows[:, 1:] >= p).any():
             raise InputError(f"result: field '{name}' indexes an image or column out of range")
+    if result.offset_px is not None and result.offset_px.shape != (n, p, 2):
+        raise InputError(f"result: field 'offset_px' must have shape ({n}, {p}, 2), got "
+                         f"{result.offset_px.shape}")
     if result.outlier_residual_px.shape != (len(result.outliers),):
         raise InputError(f"result: field 'outlier_residual_px' must have shape "
                          f"({len(result.outliers)},), got {result.outlier_residual_px.shape}")
@@ -355,6 +377,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     per_point = [{"point_id": int(point_id[k]), "subject_id": int(subject_id[k]),
                   "name": point_names[k], **error_stats(errors[:, k])} for k in range(p)]
     robust = _robust_report(capture, result, subject_id, point_id, layout_names)
+    offsets = _offset_report(capture, result, subject_id, point_id, layout_names)
     full_report = {
         "images": n,
         "points": num_layout,
@@ -387,6 +410,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         "time_unit": sync["time_unit"],
         "sync": sync,
         **robust,
+        **offsets,
     }
     full_report = _json_ready(full_report)
     with open(folder / "report.json", "w") as f:
@@ -438,4 +462,8 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
     logger.info("%d subject(s); robust loss: %d observation(s) down-weighted, %d left/right "
                 "swap(s) fixed (report.json)", summary["subjects"],
                 summary["downweighted"]["count"], summary["swaps_fixed"]["count"])
+    if summary["stream_offsets"]["count"]:
+        logger.info("detector offsets taken out: %d (stream, point) pairs, median %.2f px "
+                    "(report.json: stream_offsets)", summary["stream_offsets"]["count"],
+                    summary["stream_offsets"]["median_px"])
     return summary

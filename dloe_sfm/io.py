@@ -243,7 +243,7 @@ _TEXT_KEYS = ("image_status", "status_reason")
 RESULT_KEYS = ("X", "order", "A_data", "A_indices", "A_indptr", "W_data", "W_indices",
                "W_indptr", "D", "events", "embedding", "cost_history", "change_history",
                "seconds", "subject_id", "point_id", "assignment", "outliers", "swaps",
-               "outlier_residual_px", *CHECK_KEYS)
+               "outlier_residual_px", "offset_px", *CHECK_KEYS)
 """Keys of a result file that are read (``result_arrays``); others are skipped."""
 _REAL = "biuf"  # bool, signed / unsigned integers, floats: no objects, strings or complex
 _KIND_NAMES = {"b": "bool", "i": "integers", "u": "unsigned integers", "f": "floats",
@@ -479,6 +479,7 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
             if (v := getattr(result, k)) is not None and np.size(v)
         },
         **({"outlier_residual_px": result.outlier_residual_px} if result.outliers.size else {}),
+        **({} if result.offset_px is None else {"offset_px": result.offset_px}),
         **({} if result.image_status is None else
            {k: np.asarray(getattr(result, k)).astype(str) if k in _TEXT_KEYS
             else np.asarray(getattr(result, k)) for k in CHECK_KEYS}),
@@ -515,7 +516,8 @@ def load_result(path: Path | str) -> Result:
         n = X_shape[0]
         expected = {"order": (n,), "events": (n,), "A_indptr": (n + 1,), "W_indptr": (n + 1,),
                     **{k: (n,) for k in CHECK_KEYS[:4]},
-                    **{k: tuple(X_shape[:2]) for k in CHECK_KEYS[4:]}}
+                    **{k: tuple(X_shape[:2]) for k in CHECK_KEYS[4:]},
+                    "offset_px": (*X_shape[:2], 2)}
         for k in keys:
             shape = npz._headers[k][0]
             if k in expected and shape != expected[k]:
@@ -547,7 +549,8 @@ def load_result(path: Path | str) -> Result:
         raise InputError(f"{path}: key 'seconds' must be one number, got shape {seconds.shape}")
     empty = np.zeros(0)
     optional = {k: out[k] for k in ("subject_id", "point_id", "assignment", "outliers", "swaps",
-                                    "outlier_residual_px", *CHECK_KEYS) if k in out}
+                                    "outlier_residual_px", "offset_px", *CHECK_KEYS)
+                if k in out}
     if "supported" in optional:
         optional["supported"] = optional["supported"].astype(bool)
     return Result(

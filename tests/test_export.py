@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,9 @@ from scenes import TOY_LAYOUT, F, P, toy_capture
 from dloe_sfm import Capture, InputError, Result
 from dloe_sfm import export as export_module
 from dloe_sfm.columns import frame_file_stem
+from dloe_sfm.core.bias import without_offsets
 from dloe_sfm.export import export_outputs, reprojection_errors
+from dloe_sfm.io import load_result, save_result
 
 
 @pytest.fixture(scope="module")
@@ -163,3 +166,31 @@ def test_mismatched_result_is_refused(tmp_path) -> None:
     with pytest.raises(InputError, match="order"):
         export_outputs(tmp_path / "out", capture, result)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_stream_offsets_in_the_report_and_the_result_file(tmp_path) -> None:
+    """A result whose observations had each stream's offsets taken out (``offset_px``,
+    ``solved``): report.json lists them by stream and point name, the exported errors are
+    against the observations without them, and a result file keeps them for a later export."""
+    capture, result, X = toy_capture()
+    shift = np.zeros((capture.stream.max() + 1, P, 2))
+    shift[1, 0], shift[2, 3] = [3.0, -1.0], [0.0, 2.5]
+    offsets = shift[capture.stream]
+    detected = Capture(x=capture.x + offsets, K=capture.K, R=capture.R, C=capture.C,
+                       stream=capture.stream, frame=capture.frame,
+                       confidence=capture.confidence, image_names=capture.image_names)
+    exact = replace(result, X=X, offset_px=offsets, solved=without_offsets(detected, offsets))
+    report = export_outputs(tmp_path / "out", detected, exact, layout=TOY_LAYOUT, plots=False)
+    listed = {(o["stream"], o["point"]): o["offset_px"]
+              for o in report["stream_offsets"]["offsets"]}
+    assert listed == {(1, TOY_LAYOUT.point_names[0]): [3.0, -1.0],
+                      (2, TOY_LAYOUT.point_names[3]): [0.0, 2.5]}
+    assert report["reprojection_error_px"]["all"]["max"] < 1e-6
+    loaded = load_result(save_result(tmp_path / "result.npz", replace(exact, solved=None)))
+    assert np.array_equal(loaded.offset_px, offsets)
+    again = export_outputs(tmp_path / "again", detected, loaded, layout=TOY_LAYOUT, plots=False)
+    assert again["reprojection_error_px"]["all"]["max"] < 1e-6
+    plain = export_outputs(tmp_path / "plain", detected, replace(exact, offset_px=None,
+                                                                 solved=None), plots=False)
+    assert plain["stream_offsets"]["count"] == 0
+    assert plain["reprojection_error_px"]["all"]["max"] == pytest.approx(np.sqrt(10.0))

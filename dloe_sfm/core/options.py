@@ -187,6 +187,7 @@ RULES: dict[str, Number | Flag | Choice] = {
     "cost_tolerance": Number(0.0),
     "stream_clocks": Choice(Clocks),
     "shared_rate": Flag(),
+    "stream_offsets": Flag(),
     "robust_loss": Choice(RobustLoss),
     "robust_scale_px": Number(0.0, lo_open=True, optional=True),
     "robust_iterations": _count(0),
@@ -297,6 +298,11 @@ class Options:
     shared_rate: bool = False
     """With ``stream_clocks``: all streams run at one frame rate (True); else each stream's rate
     is fitted too, starting from the fit with one shared rate."""
+    stream_offsets: bool = True
+    """With ``stream_clocks``: each stream's constant offset of each point's detections (a
+    detector's bias in that view) is estimated on the events placed on clocks and taken out
+    before the clocks are fitted again, where it predicts the frames it was not estimated on
+    (``core.bias``); False: the detections as they are."""
     robust_loss: RobustLoss = RobustLoss.CAUCHY
     """Loss on every observation's residual r: its pixel distance from what the solved graph
     predicts there (``W X``) without it. Observations are reweighted and the capture re-solved."""

@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
+from .bias import GAIN, stream_offsets, without_offsets
 from .capture import Capture
 from .clocks import (
     REACH,
@@ -71,7 +72,8 @@ def solve_single(
         checked = None
         if result.outliers.size or result.swaps.size:
             checked = result.solved if result.swaps.size else capture
-        result = clocked(solved, options, result, auto_noise=auto_noise, checked=checked)
+        result = clocks_and_offsets(capture, solved, options, result, auto_noise=auto_noise,
+                                    checked=checked)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
     return replace(result, timings=timings, seconds=time.perf_counter() - started)
 
@@ -315,8 +317,8 @@ def event_clocks(
 
 def clocked(
     capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
-    checked: Capture | None = None
-) -> Result:
+    checked: Capture | None = None, times: np.ndarray | None = None
+) -> tuple[Result, np.ndarray]:
     """``result`` with every event that is filmed by videos (two or more streams of three or
     more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
     the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
@@ -330,13 +332,15 @@ def clocked(
     then theirs). With ``checked`` (the capture before the robust weights, swaps undone) the
     observations of every event with fitted clocks are judged again against the chain along
     them (:func:`robust_on_clocks`) before the held-out check, which then judges both models
-    on that verdict; ``outliers`` follow the events that keep their clocks.
+    on that verdict; ``outliers`` follow the events that keep their clocks. Returns the result
+    and the (N,) clocks as fitted, before the check (NaN where not fitted); ``times``, such
+    clocks of an earlier call, are taken instead of fitting them again.
     """
     t_start = time.perf_counter()
     n = capture.num_images
     X, D = result.X.copy(), result.D.copy()
     order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
-    clock = np.full(n, np.nan)
+    clock, fitted = np.full(n, np.nan), np.full(n, np.nan)
     noise_px = result.noise_px
     chains = []  # (data, rows, cols) of every clocked event's W
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
@@ -353,12 +357,16 @@ def clocked(
         norm = normalise(sub, options, X[idx])
         prob = norm.problem
         Xe = norm.to_normal(X[idx])
-        t0 = affine_time(Xe, prob.streams, sub.frame)
-        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
+        if times is None:
+            t0 = affine_time(Xe, prob.streams, sub.frame)
+            t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
+        else:
+            t = times[idx] if np.isfinite(times[idx]).all() else None
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
             continue
+        fitted[idx] = t
         noise, held = options.noise_px, None
         if auto_noise and noise == 0:
             noise, held = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
@@ -385,7 +393,7 @@ def clocked(
         embedding[idx] = lo + (t - t.min()) * (hi - lo) / max(np.ptp(t), 1e-300)
     timings = {**result.timings, "clocks": time.perf_counter() - t_start}
     if not chains:
-        return replace(result, timings=timings)
+        return replace(result, timings=timings), fitted
     coo = result.W.tocoo()
     dloe = np.isnan(clock)[coo.row]  # rows of the events left to DLOE's graph
     chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
@@ -395,7 +403,77 @@ def clocked(
         result = replace(result, outliers=np.stack([img, col], axis=1).astype(np.int64),
                          outlier_residual_px=residual[img, col])
     return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
-                   order=order, embedding=embedding, timings=timings, noise_px=noise_px)
+                   order=order, embedding=embedding, timings=timings,
+                   noise_px=noise_px), fitted
+
+
+def clocks_and_offsets(
+    capture: Capture, solved: Capture, options: Options, graph: Result, *, auto_noise: bool,
+    checked: Capture | None
+) -> Result:
+    """:func:`clocked` with the streams' offsets of the detections taken out (``core.bias``).
+
+    Every event whose clocks the rays pin is placed on them (``stream_clocks`` ``on``), the
+    offsets estimated there (:func:`clock_offsets`) and, where they predict, taken out of the
+    observations: the clocks are fitted again and the events judged (``stream_clocks``) on
+    the detections without them; ``solved`` and ``offset_px`` of the result hold them where
+    its points are on clocks. Else, or without ``options.stream_offsets``, the first clocks are
+    judged on the detections as they are. ``capture``: the solver's input; ``solved``, the
+    capture it was solved on and ``checked`` as :func:`clocked` takes them."""
+    if not options.stream_offsets:
+        return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)[0]
+    trial, fitted = clocked(solved, options.replace(stream_clocks=Clocks.ON), graph,
+                            auto_noise=auto_noise, checked=checked)
+    if trial.clock is None:  # no event's clocks pinned
+        return trial
+    first = trial.timings["clocks"]
+    offsets = clock_offsets(capture, trial)
+    if offsets is None:
+        if options.stream_clocks is Clocks.ON:
+            return trial
+        result = clocked(solved, options, graph, auto_noise=auto_noise, checked=checked,
+                         times=fitted)[0]
+    else:
+        result = clocked(without_offsets(solved, offsets), options, graph,
+                         auto_noise=auto_noise,
+                         checked=None if checked is None else without_offsets(checked, offsets))[0]
+    result = replace(result, timings={**result.timings,
+                                      "clocks": first + result.timings["clocks"]})
+    if offsets is None or result.clock is None:
+        return result
+    offsets[np.isnan(result.clock)] = 0.0  # only where the points are on the clocks
+    base = capture if graph.solved is None else graph.solved
+    return replace(result, solved=without_offsets(base, offsets), offset_px=offsets)
+
+
+def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
+    """(N, P, 2) pixel offsets of each stream's detections of each point on the events
+    ``result`` placed on its clocks (``bias.stream_offsets``: residuals against the chain along
+    them, the outliers left out; 0 elsewhere), or None where there are none or they do not
+    predict the frames they were not estimated on; logged when estimated. ``capture``: the
+    solver's input."""
+    on_clocks = np.isfinite(result.clock)
+    X_pred = np.full(result.X.shape, np.nan)
+    for e in np.unique(result.events[on_clocks]):
+        idx = np.flatnonzero(on_clocks & (result.events == e))
+        X_pred[idx] = chain_predicted(result.W[idx][:, idx], result.clock[idx], result.X[idx])
+    rejected = np.zeros(capture.x.shape[:2], dtype=bool)
+    if result.outliers.size:
+        rejected[tuple(result.outliers.T)] = True
+    found = stream_offsets(capture if result.solved is None else result.solved, X_pred,
+                           rejected)
+    if found is None:
+        return None
+    offsets, before, after = found
+    offsets[~on_clocks] = 0.0
+    size = np.linalg.norm(offsets, axis=2)
+    if not size.any():
+        return None
+    keep = after <= GAIN * before
+    logger.info("stream offsets of the detections, median %.2f px: residuals of the frames they "
+                "were not estimated on %.2f -> %.2f px (median), %s", np.median(size[size > 0]),
+                before, after, "taken out" if keep else "not taken out")
+    return offsets if keep else None
 
 
 def robust_on_clocks(

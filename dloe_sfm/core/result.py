@@ -62,8 +62,11 @@ class Result:
     swaps : (K, 3) int
         (image, column a, column b): left/right detections found swapped and exchanged.
     solved : Capture or None
-        The (N, P', 2) observations X refers to (subjects aggregated, swaps undone); None when
-        that is the input capture itself.
+        The (N, P', 2) observations X refers to (subjects aggregated, swaps undone, stream
+        offsets taken out); None when that is the input capture itself.
+    offset_px : (N, P', 2) float or None
+        The pixel offset of its stream's detections of the point (``core.bias``) taken out of
+        every observation in ``solved``; None when none was.
     image_status : (N,) str or None
         Per-image check of the solution (``core.assess``): ``ok``, ``uncertain`` (the data
         determine its shape weakly) or ``inconsistent`` (its shape disagrees with its rays or
@@ -107,6 +110,7 @@ class Result:
     outlier_residual_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     swaps: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
     solved: Capture | None = None
+    offset_px: np.ndarray | None = None
     image_status: np.ndarray | None = None
     status_reason: np.ndarray | None = None
     residual_px: np.ndarray | None = None

@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InputError
+from .bias import without_offsets
 from .capture import Capture
 from .events import segment_events
 from .options import Options
@@ -116,10 +117,13 @@ def stitch(
     n, p = capture.num_images, capture.num_points
     X = np.empty((n, p, 3))
     D = np.empty(n)
+    offsets = np.zeros((n, p, 2))
     W_parts, outliers, residuals, swaps = [], [], [], []
     for w, (idx, r) in enumerate(zip(windows, results, strict=True)):
         mine = home[idx] == w
         X[idx[mine]], D[idx[mine]] = r.X[mine], r.D[mine]
+        if r.offset_px is not None:
+            offsets[idx[mine]] = r.offset_px[mine]
         data, rows, cols = parts(r.W, idx)
         keep = home[rows] == w
         W_parts.append((data[keep], rows[keep], cols[keep]))
@@ -141,6 +145,10 @@ def stitch(
     W = assemble(W_parts, n)
     A = sp.csr_matrix(sp.diags(D) @ W)
     swaps_all = np.concatenate(swaps) if swaps else np.zeros((0, 3), dtype=np.int64)
+    solved = apply_swaps(capture, swaps_all) if swaps_all.size else None
+    shifted = bool(offsets.any())
+    if shifted:
+        solved = without_offsets(capture if solved is None else solved, offsets)
     return Result(
         X=X,
         order=np.argsort(t, kind="stable"),
@@ -156,5 +164,6 @@ def stitch(
         outliers=np.concatenate(outliers) if outliers else np.zeros((0, 2), dtype=np.int64),
         outlier_residual_px=np.concatenate(residuals) if residuals else np.zeros(0),
         swaps=swaps_all,
-        solved=apply_swaps(capture, swaps_all) if swaps_all.size else None,
+        solved=solved,
+        offset_px=offsets if shifted else None,
     )
