@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import logging
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -148,6 +149,33 @@ def plot_reconstructability(result: Result, capture: Capture, path: Path | str) 
         ax_sd.legend(loc="upper right", fontsize=8)
     ax_sd.set_title(f"Reconstructability per image ({int((status != 'ok').sum())} of "
                     f"{order.size} flagged)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_stream_offsets(result: Result, capture: Capture, path: Path | str,
+                        point_names: list[str]) -> Path:
+    """The detector offsets taken out (``Result.offset_px``, ``core.bias``): their length in
+    pixels per stream (rows, with image counts) and point (columns), the median over each
+    stream's images; blank where none was taken out."""
+    stream = capture.stream_ids
+    ids = np.unique(stream)
+    size = np.stack([np.linalg.norm(np.median(result.offset_px[stream == s], axis=0), axis=1)
+                     for s in ids])
+    size[size == 0] = np.nan
+    streams = np.flatnonzero(np.isfinite(size).any(axis=1))
+    size = size[streams]
+    fig = _figure(figsize=(min(2.0 + 0.32 * size.shape[1], 16.0),
+                           min(1.6 + 0.3 * streams.size, 12.0)))
+    ax = fig.subplots()
+    shown = ax.imshow(size, aspect="auto", cmap="viridis", interpolation="nearest")
+    fig.colorbar(shown, ax=ax, label="offset (px)")
+    ax.set_yticks(np.arange(streams.size),
+                  [f"stream {ids[s]} ({int((stream == ids[s]).sum())})" for s in streams],
+                  fontsize=7)
+    ax.set_xticks(np.arange(len(point_names)), point_names, rotation=90, fontsize=6)
+    ax.set_title(f"Detector offsets taken out, median {np.nanmedian(size):.2f} px "
+                 f"({int(np.isfinite(size).sum())} stream-point pairs)")
     fig.tight_layout()
     return _save(fig, path)
 
@@ -524,8 +552,9 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
                 workspace: Workspace | None = None,
                 edges: np.ndarray | None = None, point_names: list[str] | None = None,
                 num_overlays: int = 4) -> list[Path]:
-    """Sequence, affinity, event and trajectory plots, the animation (``animation.gif``, with
-    the workspace's static points), plus reprojection overlays on ``num_overlays`` images
+    """Sequence, affinity, event and trajectory plots, the detector offsets taken out (when
+    any), the animation (``animation.gif``, with the workspace's static points), plus
+    reprojection overlays on ``num_overlays`` images
     spread over the estimated order when the workspace's image files exist. ``edges`` (E, 2)
     and ``point_names`` (P,) are the layout's (point ids); with several subjects, skeletons
     and trajectories are drawn per subject."""
@@ -540,6 +569,11 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
         plot_events(result, folder / "events.png"),
         *([] if result.image_status is None else
           [plot_reconstructability(result, capture, folder / "reconstructability.png")]),
+        *([] if result.offset_px is None else
+          [plot_stream_offsets(result, capture, folder / "stream_offsets.png", [
+              (str(j) if point_names is None else point_names[j])
+              if subjects is None else f"s{k}_{j if point_names is None else point_names[j]}"
+              for k, j in zip(subject_id, point_id, strict=True)])]),
         plot_trajectories(result.X, result.order, folder / "trajectories.png",
                           point_names=None if point_names is None else
                           [point_names[j] for j in point_id],
@@ -555,7 +589,9 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
     if workspace is None or workspace.image_dir is None or num_overlays <= 0:
         return written
 
-    rays = capture.rays()
+    detected = capture if result.offset_px is None else replace(  # the user's own detections
+        capture, x=capture.x + result.offset_px)
+    rays = detected.rays()
     picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
     for i in dict.fromkeys(picks.tolist()):
         name = str(capture.image_names[i])

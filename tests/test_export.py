@@ -19,6 +19,7 @@ from dloe_sfm.columns import frame_file_stem
 from dloe_sfm.core.bias import without_offsets
 from dloe_sfm.export import export_outputs, reprojection_errors
 from dloe_sfm.io import load_result, save_result
+from dloe_sfm.viz import plot_stream_offsets
 
 
 @pytest.fixture(scope="module")
@@ -194,3 +195,6 @@ def test_stream_offsets_in_the_report_and_the_result_file(tmp_path) -> None:
                                                                  solved=None), plots=False)
     assert plain["stream_offsets"]["count"] == 0
     assert plain["reprojection_error_px"]["all"]["max"] == pytest.approx(np.sqrt(10.0))
+    png = plot_stream_offsets(exact, exact.solved, tmp_path / "offsets.png",
+                              TOY_LAYOUT.point_names)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
