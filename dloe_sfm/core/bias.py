@@ -12,7 +12,10 @@ stream's images, of one point's residuals is that stream's offset of the point l
 streams around it share. It is kept only where it predicts: estimated on every other frame of
 each stream, it must shrink the residuals of the frames in between (both ways round) by
 :data:`GAIN`; interpolation errors of fast motion and noise do not repeat from frame to frame,
-an offset does (docs/method.md, "Stream offsets").
+an offset does. What one 3D shift of the point explains of them (its image motion in every
+observation, least squares) moves no ray against another: it is left to the point, and the
+offsets taken out are the smallest that explain the residuals (docs/method.md, "Stream
+offsets").
 """
 
 from __future__ import annotations
@@ -87,7 +90,8 @@ def _without_shift(capture: Capture, X: np.ndarray, offsets: np.ndarray,
     shifted = np.abs(offsets).sum(axis=2) > 0
     fit = fit & shifted
     on = np.isfinite(X).all(axis=2) & shifted
-    Xf = np.where(on[..., None], X, 0.0)
+    ahead = capture.C[:, None, :] + capture.R[:, None, 2, :]  # a unit in front of each camera
+    Xf = np.where(on[..., None], X, ahead)
     depth = np.einsum("nk,npk->np", capture.R[:, 2], Xf - capture.C[:, None, :])
     h = 1e-6 * float(np.median(np.abs(depth[fit]))) if fit.any() else 1e-6
     base = project(Xf, capture.K, capture.R, capture.C)
