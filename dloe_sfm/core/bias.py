@@ -25,6 +25,8 @@ from dataclasses import replace
 import numpy as np
 
 from .capture import Capture, project
+from .robust import residual_vectors
+from .sequencing import stream_members
 
 MIN_IMAGES = 5
 """A stream's offset of a point is estimated from at least this many of its images' residuals
@@ -60,14 +62,12 @@ def stream_offsets(
     observations (0 where a stream has too few of a point), with the cross-validated median
     residual without and with them (pixels), or None when a stream has too few images for any
     offset at all."""
-    res = capture.x - project(X_pred, capture.K, capture.R, capture.C)
-    depth = np.einsum("nk,npk->np", capture.R[:, 2], X_pred - capture.C[:, None, :])
-    ok = capture.visible & ~rejected & np.isfinite(res).all(axis=2) & (depth > 0)
+    res = residual_vectors(capture, X_pred)
+    ok = ~rejected & np.isfinite(res).all(axis=2)
     stream = capture.stream_ids
     rank = np.empty(stream.size, dtype=np.int64)
-    for s in np.unique(stream):
-        rows = np.flatnonzero(stream == s)
-        rank[rows[np.argsort(capture.frame[rows], kind="stable")]] = np.arange(rows.size)
+    for members in stream_members(stream, capture.frame):
+        rank[members] = np.arange(members.size)
     even = (rank % 2 == 0)[:, None]
     halves = [_medians(res, ok & even, stream), _medians(res, ok & ~even, stream)]
     other = np.where(even[..., None], halves[1], halves[0])  # from the frames in between

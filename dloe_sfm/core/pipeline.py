@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -315,61 +316,72 @@ def event_clocks(
                       shared_rate=options.shared_rate)
 
 
-def clocked(
-    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
-    checked: Capture | None = None, times: np.ndarray | None = None
-) -> tuple[Result, np.ndarray]:
-    """``result`` with every event that is filmed by videos (two or more streams of three or
-    more frames) placed on its streams' fitted affine clocks (``core.clocks``): the points by
-    the X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), its
-    W and D rows that chain's, its block of the order and its embedding (span kept) from the
-    clocks. ``capture`` is the one the result was solved on (:func:`robust_rounds`); an event
-    whose clocks the rays do not pin keeps DLOE's graph, and with ``stream_clocks`` ``auto`` so
-    does one whose clocks predict held-out images worse than the graph
-    (:func:`clocks_predict`). ``clock`` holds the times. With ``auto_noise`` (``noise_px`` was
-    ``auto``) and hard rays kept by the graph's check, a clocked event takes soft rays where the
-    clocks' held-out images ask for them (:func:`soft_on_clocks`; ``noise_px`` of the result is
-    then theirs). With ``checked`` (the capture before the robust weights, swaps undone) the
-    observations of every event with fitted clocks are judged again against the chain along
-    them (:func:`robust_on_clocks`) before the held-out check, which then judges both models
-    on that verdict; ``outliers`` follow the events that keep their clocks. Returns the result
-    and the (N,) clocks as fitted, before the check (NaN where not fitted); ``times``, such
-    clocks of an earlier call, are taken instead of fitting them again.
-    """
-    t_start = time.perf_counter()
-    n = capture.num_images
-    X, D = result.X.copy(), result.D.copy()
-    order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
-    clock, fitted = np.full(n, np.nan), np.full(n, np.nan)
-    noise_px = result.noise_px
-    chains = []  # (data, rows, cols) of every clocked event's W
-    rejected = np.zeros(capture.x.shape[:2], dtype=bool)
-    residual = np.full(capture.x.shape[:2], np.nan)
+def outlier_arrays(result: Result) -> tuple[np.ndarray, np.ndarray]:
+    """(N, P) the observations ``result`` left out (``outliers``) and their residuals in
+    pixels (``outlier_residual_px``; NaN elsewhere)."""
+    rejected = np.zeros(result.X.shape[:2], dtype=bool)
+    residual = np.full(result.X.shape[:2], np.nan)
     if result.outliers.size:
         rejected[tuple(result.outliers.T)] = True
         residual[tuple(result.outliers.T)] = result.outlier_residual_px
+    return rejected, residual
+
+
+class Placement(NamedTuple):
+    """One event placed on its stream clocks (:func:`placements`): its images ``idx``, clocks
+    ``t``, the chain's ``W`` and ``D``, points ``X`` (world), rejected observations and their
+    residuals (pixels), the detection ``noise`` its rays took, and what the held-out check
+    (:func:`clocks_predict`) judges it on: the capture ``judged`` and the clocks' held-out
+    residuals ``held`` when known."""
+
+    idx: np.ndarray
+    t: np.ndarray
+    W: sp.csr_matrix
+    D: np.ndarray
+    X: np.ndarray
+    rejected: np.ndarray
+    residual: np.ndarray
+    noise: float
+    judged: Capture
+    held: np.ndarray | None
+
+
+def placements(
+    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
+    checked: Capture | None = None
+) -> list[Placement]:
+    """Every event of ``result`` that is filmed by videos (two or more streams of three or more
+    frames) and whose clocks the rays pin (``core.clocks``), placed on them: the points by the
+    X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), the
+    chain's W and D. ``capture`` is the one the result was solved on (:func:`robust_rounds`).
+    With ``auto_noise`` (``noise_px`` was ``auto``) and hard rays kept by the graph's check,
+    an event takes soft rays where the clocks' held-out images ask for them
+    (:func:`soft_on_clocks`). With ``checked`` (the capture before the robust weights, swaps
+    undone) the observations of every event are judged again against the chain along its
+    clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
+    verdict."""
+    n = capture.num_images
+    rejected, residual = outlier_arrays(result)
+    placed = []
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
         ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
         if ids.size < 2 or counts.min() < 3:
             continue
         sub = capture.subset(idx) if idx.size < n else capture
-        norm = normalise(sub, options, X[idx])
+        norm = normalise(sub, options, result.X[idx])
         prob = norm.problem
-        Xe = norm.to_normal(X[idx])
-        if times is None:
-            t0 = affine_time(Xe, prob.streams, sub.frame)
-            t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
-        else:
-            t = times[idx] if np.isfinite(times[idx]).all() else None
+        Xe = norm.to_normal(result.X[idx])
+        t0 = affine_time(Xe, prob.streams, sub.frame)
+        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
             continue
-        fitted[idx] = t
         noise, held = options.noise_px, None
         if auto_noise and noise == 0:
-            noise, held = soft_on_clocks(sub, options, X[idx], D[idx], result.W[idx][:, idx], t)
+            noise, held = soft_on_clocks(sub, options, result.X[idx], result.D[idx],
+                                         result.W[idx][:, idx], t)
         ticked = options.replace(noise_px=noise)
         # the chain's weights come from the time line: no compactness term (as the oracle)
         W, D_e = time_chain(t)
@@ -381,30 +393,72 @@ def clocked(
                                                                    rej_e)
             if weights is not None:  # both models are judged on the clocks' verdict
                 judged, held = reweighted(csub, weights), None
-        auto = options.stream_clocks is Clocks.AUTO
-        if auto and not clocks_predict(judged, options, X[idx], D[idx], t, noise, held):
-            continue
-        noise_px = max(noise_px, noise)
-        D[idx], rejected[idx], residual[idx] = D_e, rej_e, res_e
-        X[idx], clock[idx] = norm.to_world(Xe), t
-        chains.append(parts(W, idx))
+        placed.append(Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged,
+                                held))
+    return placed
+
+
+def kept_placements(
+    placed: list[Placement], options: Options, result: Result
+) -> list[Placement]:
+    """The placements that ``options.stream_clocks`` keeps: all with ``on``; with ``auto``
+    those whose clocks predict held-out images at least as well as the graph of ``result``
+    (:func:`clocks_predict`)."""
+    if options.stream_clocks is not Clocks.AUTO:
+        return placed
+    return [p for p in placed if clocks_predict(p.judged, options, result.X[p.idx],
+                                                result.D[p.idx], p.t, p.noise, p.held)]
+
+
+def on_clocks(result: Result, placed: list[Placement], *, checked: bool) -> Result:
+    """``result`` with the events of ``placed`` on their clocks: points, W and D rows the
+    chain's, their block of the order and their embedding (span kept) from the clocks,
+    ``clock`` the times, ``noise_px`` the largest their rays took; with ``checked`` (the
+    observations were judged again on the clocks) ``outliers`` theirs on those events."""
+    if not placed:
+        return result
+    n = result.X.shape[0]
+    X, D = result.X.copy(), result.D.copy()
+    order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
+    clock = np.full(n, np.nan)
+    noise_px = result.noise_px
+    rejected, residual = outlier_arrays(result)
+    chains = []  # (data, rows, cols) of every clocked event's W
+    for p in placed:
+        idx, t = p.idx, p.t
+        noise_px = max(noise_px, p.noise)
+        D[idx], rejected[idx], residual[idx] = p.D, p.rejected, p.residual
+        X[idx], clock[idx] = p.X, t
+        chains.append(parts(p.W, idx))
         order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
         lo, hi = embedding[idx].min(), embedding[idx].max()
         embedding[idx] = lo + (t - t.min()) * (hi - lo) / max(np.ptp(t), 1e-300)
-    timings = {**result.timings, "clocks": time.perf_counter() - t_start}
-    if not chains:
-        return replace(result, timings=timings), fitted
     coo = result.W.tocoo()
     dloe = np.isnan(clock)[coo.row]  # rows of the events left to DLOE's graph
     chains.append((coo.data[dloe], coo.row[dloe], coo.col[dloe]))
     W = assemble(chains, n)
-    if checked is not None:
+    if checked:
         img, col = np.nonzero(rejected)
         result = replace(result, outliers=np.stack([img, col], axis=1).astype(np.int64),
                          outlier_residual_px=residual[img, col])
     return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
-                   order=order, embedding=embedding, timings=timings,
-                   noise_px=noise_px), fitted
+                   order=order, embedding=embedding, noise_px=noise_px)
+
+
+def clocked(
+    capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
+    checked: Capture | None = None
+) -> Result:
+    """``result`` with every event that is filmed by videos placed on its streams' fitted
+    affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
+    (:func:`kept_placements`); an event whose clocks the rays do not pin keeps DLOE's graph.
+    ``outliers`` follow the events that keep their clocks; ``timings`` gain ``clocks``."""
+    t_start = time.perf_counter()
+    placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked)
+    placed_result = on_clocks(result, kept_placements(placed, options, result),
+                              checked=checked is not None)
+    return replace(placed_result, timings={**result.timings,
+                                           "clocks": time.perf_counter() - t_start})
 
 
 def clocks_and_offsets(
@@ -413,33 +467,30 @@ def clocks_and_offsets(
 ) -> Result:
     """:func:`clocked` with the streams' offsets of the detections taken out (``core.bias``).
 
-    Every event whose clocks the rays pin is placed on them (``stream_clocks`` ``on``), the
-    offsets estimated there (:func:`clock_offsets`) and, where they predict, taken out of the
-    observations: the clocks are fitted again and the events judged (``stream_clocks``) on
-    the detections without them; ``solved`` and ``offset_px`` of the result hold them where
-    its points are on clocks. Else, or without ``options.stream_offsets``, the first clocks are
-    judged on the detections as they are. ``capture``: the solver's input; ``solved``, the
-    capture it was solved on and ``checked`` as :func:`clocked` takes them."""
+    The offsets are estimated (:func:`clock_offsets`) with every event whose clocks the rays
+    pin on them, before the held-out check. Where they predict, they are taken out of the
+    observations and the events placed and judged again on the detections without them;
+    ``solved`` and ``offset_px`` of the result hold them where its points are on clocks. Else,
+    or without ``options.stream_offsets``, the placements are judged on the detections as they
+    are. ``capture``: the solver's input; ``solved``, the capture it was solved on and
+    ``checked`` as :func:`clocked` takes them."""
     if not options.stream_offsets:
-        return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)[0]
-    trial, fitted = clocked(solved, options.replace(stream_clocks=Clocks.ON), graph,
-                            auto_noise=auto_noise, checked=checked)
-    if trial.clock is None:  # no event's clocks pinned
-        return trial
-    first = trial.timings["clocks"]
-    offsets = clock_offsets(capture, trial)
+        return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)
+    t_start = time.perf_counter()
+    placed = placements(solved, options, graph, auto_noise=auto_noise, checked=checked)
+    offsets = None
+    if placed:
+        offsets = clock_offsets(capture, on_clocks(graph, placed, checked=checked is not None))
     if offsets is None:
-        if options.stream_clocks is Clocks.ON:
-            return trial
-        result = clocked(solved, options, graph, auto_noise=auto_noise, checked=checked,
-                         times=fitted)[0]
-    else:
-        result = clocked(without_offsets(solved, offsets), options, graph,
-                         auto_noise=auto_noise,
-                         checked=None if checked is None else without_offsets(checked, offsets))[0]
+        result = on_clocks(graph, kept_placements(placed, options, graph),
+                           checked=checked is not None)
+        return replace(result, timings={**graph.timings,
+                                        "clocks": time.perf_counter() - t_start})
+    result = clocked(without_offsets(solved, offsets), options, graph, auto_noise=auto_noise,
+                     checked=None if checked is None else without_offsets(checked, offsets))
     result = replace(result, timings={**result.timings,
-                                      "clocks": first + result.timings["clocks"]})
-    if offsets is None or result.clock is None:
+                                      "clocks": time.perf_counter() - t_start})
+    if result.clock is None:
         return result
     offsets[np.isnan(result.clock)] = 0.0  # only where the points are on the clocks
     base = capture if graph.solved is None else graph.solved
@@ -457,11 +508,8 @@ def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
     for e in np.unique(result.events[on_clocks]):
         idx = np.flatnonzero(on_clocks & (result.events == e))
         X_pred[idx] = chain_predicted(result.W[idx][:, idx], result.clock[idx], result.X[idx])
-    rejected = np.zeros(capture.x.shape[:2], dtype=bool)
-    if result.outliers.size:
-        rejected[tuple(result.outliers.T)] = True
     found = stream_offsets(capture if result.solved is None else result.solved, X_pred,
-                           rejected)
+                           outlier_arrays(result)[0])
     if found is None:
         return None
     offsets, before, after = found

@@ -24,14 +24,19 @@ def predicted(W: sp.spmatrix, X: np.ndarray) -> np.ndarray:
     return np.asarray(sp.csr_matrix(W) @ X.reshape(n, -1)).reshape(X.shape)
 
 
+def residual_vectors(capture: Capture, X_pred: np.ndarray) -> np.ndarray:
+    """(N, P, 2) each observation less the projection of its prediction, pixels (NaN where
+    unobserved or the prediction is behind the camera)."""
+    cam_z = np.einsum("nk,npk->np", capture.R[:, 2], X_pred - capture.C[:, None, :])
+    res = capture.x - project(X_pred, capture.K, capture.R, capture.C)
+    res[~capture.visible | (cam_z <= 0)] = np.nan
+    return res
+
+
 def residuals_px(capture: Capture, X_pred: np.ndarray) -> np.ndarray:
     """(N, P) pixel distance between each observation and the projection of its prediction
     (NaN where unobserved or the prediction is behind the camera)."""
-    cam_z = np.einsum("nk,npk->np", capture.R[:, 2], X_pred - capture.C[:, None, :])
-    x_hat = project(X_pred, capture.K, capture.R, capture.C)
-    res = np.linalg.norm(x_hat - capture.x, axis=2)
-    res[~capture.visible | (cam_z <= 0)] = np.nan
-    return res
+    return np.linalg.norm(residual_vectors(capture, X_pred), axis=2)
 
 
 def loss_scale(res: np.ndarray, scale_px: float | None) -> np.ndarray:
