@@ -53,6 +53,16 @@ def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:
     return result.subject_id.astype(np.int64), result.point_id.astype(np.int64)
 
 
+def column_labels(result: Result, point_names: list[str] | None) -> list[str]:
+    """(P',) label of every column of ``result.X``: its layout point's name in ``point_names``
+    (the point id without), ``s<subject>_`` before it with several subjects."""
+    subject_id, point_id = column_ids(result)
+    names = [str(j) if point_names is None else point_names[j] for j in point_id]
+    if result.subject_id is None:
+        return names
+    return [f"s{k}_{name}" for k, name in zip(subject_id, names, strict=True)]
+
+
 def column_edges(edges: np.ndarray, subject_id: np.ndarray, point_id: np.ndarray) -> np.ndarray:
     """(E', 2) skeleton edges between columns of X: the layout's (E, 2) edges between point ids,
     repeated for every subject (subject_id, point_id (P',) as from ``column_ids``)."""

@@ -20,7 +20,15 @@ import numpy as np
 import open3d as o3d
 
 from . import progress
-from .columns import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
+from .columns import (
+    column_edges,
+    column_ids,
+    column_labels,
+    frame_file_stem,
+    point_colors,
+    solved_capture,
+)
+from .core.bias import per_stream
 from .core.capture import Capture, project
 from .core.result import Result
 from .core.sync import Fps, check_fps, stream_clocks, sync_report, times_in_unit
@@ -190,9 +198,7 @@ def _offset_report(capture: Capture, result: Result, subject_id: np.ndarray,
     (``Result.offset_px``, ``core.bias``), by name; empty when none was."""
     offsets = []
     if result.offset_px is not None:
-        stream = capture.stream_ids
-        for s in np.unique(stream):
-            shift = np.median(result.offset_px[stream == s], axis=0)  # (P', 2)
+        for s, shift in zip(*per_stream(result.offset_px, capture.stream_ids), strict=True):
             for k in np.flatnonzero(np.abs(shift).sum(axis=1) > 0):
                 offsets.append({"stream": int(s), "point": point_names[point_id[k]],
                                 "subject_id": int(subject_id[k]),
@@ -360,9 +366,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                                  int(subject_id[k])])
 
     times, mocap = write_mocap(folder, capture, replace(result, X=X),
-                               [f"s{s}_{name}" for s, name in zip(subject_id, point_names,
-                                                                  strict=True)]
-                               if subjects else point_names, export_rate=export_rate)
+                               column_labels(result, layout_names), export_rate=export_rate)
     check_fps(fps, capture.stream_ids)
     sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"]), fps)
     times = times_in_unit(times, result.events, sync, fps)

@@ -19,8 +19,16 @@ from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 from PIL import Image
 
-from .columns import column_edges, column_ids, frame_file_stem, point_colors, solved_capture
+from .columns import (
+    column_edges,
+    column_ids,
+    column_labels,
+    frame_file_stem,
+    point_colors,
+    solved_capture,
+)
 from .core import events as core_events
+from .core.bias import per_stream
 from .core.capture import Capture
 from .core.result import Result
 from .io import atomic_path
@@ -159,9 +167,8 @@ def plot_stream_offsets(result: Result, capture: Capture, path: Path | str,
     pixels per stream (rows, with image counts) and point (columns), the median over each
     stream's images; blank where none was taken out."""
     stream = capture.stream_ids
-    ids = np.unique(stream)
-    size = np.stack([np.linalg.norm(np.median(result.offset_px[stream == s], axis=0), axis=1)
-                     for s in ids])
+    ids, offsets = per_stream(result.offset_px, stream)
+    size = np.linalg.norm(offsets, axis=2)
     size[size == 0] = np.nan
     streams = np.flatnonzero(np.isfinite(size).any(axis=1))
     size = size[streams]
@@ -570,10 +577,8 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
         *([] if result.image_status is None else
           [plot_reconstructability(result, capture, folder / "reconstructability.png")]),
         *([] if result.offset_px is None else
-          [plot_stream_offsets(result, capture, folder / "stream_offsets.png", [
-              (str(j) if point_names is None else point_names[j])
-              if subjects is None else f"s{k}_{j if point_names is None else point_names[j]}"
-              for k, j in zip(subject_id, point_id, strict=True)])]),
+          [plot_stream_offsets(result, capture, folder / "stream_offsets.png",
+                               column_labels(result, point_names))]),
         plot_trajectories(result.X, result.order, folder / "trajectories.png",
                           point_names=None if point_names is None else
                           [point_names[j] for j in point_id],

@@ -129,7 +129,7 @@ _METERED = (
     (alternation, "segment_events", "events"),
     (pipeline, "solve_events", "alternation"),
     (pipeline, "robust_rounds", "robust rounds"),
-    (pipeline, "clocked", "clocks"),
+    (pipeline, "clocks_and_offsets", "clocks"),
     (alternation, "sequence", "sequencing"),
     (solver, "assess", "assess"),
 )

@@ -105,6 +105,13 @@ def _without_shift(capture: Capture, X: np.ndarray, offsets: np.ndarray,
     return out
 
 
+def per_stream(offsets: np.ndarray, stream: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(S,) the stream ids and (S, P, 2) each stream's offset of each point: the median of the
+    observations' ``offsets`` (N, P, 2) over the stream's images (``stream`` (N,))."""
+    ids = np.unique(stream)
+    return ids, np.stack([np.median(offsets[stream == s], axis=0) for s in ids])
+
+
 def without_offsets(capture: Capture, offsets: np.ndarray) -> Capture:
     """``capture`` with the (N, P, 2) pixel ``offsets`` taken out of its observations."""
     return replace(capture, x=capture.x - offsets)

@@ -68,14 +68,16 @@ def solve_single(
     auto_noise = options.noise_px == AUTO
     if auto_noise:
         options = options.replace(noise_px=result.noise_px)
+    timings = {**result.timings, "init": result.timings["init"] + init_seconds}
     if options.stream_clocks is not Clocks.OFF:
         # the rounds' verdict is revisited where they found wrong detections
         checked = None
         if result.outliers.size or result.swaps.size:
             checked = result.solved if result.swaps.size else capture
+        t_clocks = time.perf_counter()
         result = clocks_and_offsets(capture, solved, options, result, auto_noise=auto_noise,
                                     checked=checked)
-    timings = {**result.timings, "init": result.timings["init"] + init_seconds}
+        timings["clocks"] = time.perf_counter() - t_clocks
     return replace(result, timings=timings, seconds=time.perf_counter() - started)
 
 
@@ -452,13 +454,10 @@ def clocked(
     """``result`` with every event that is filmed by videos placed on its streams' fitted
     affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
     (:func:`kept_placements`); an event whose clocks the rays do not pin keeps DLOE's graph.
-    ``outliers`` follow the events that keep their clocks; ``timings`` gain ``clocks``."""
-    t_start = time.perf_counter()
+    ``outliers`` follow the events that keep their clocks."""
     placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked)
-    placed_result = on_clocks(result, kept_placements(placed, options, result),
-                              checked=checked is not None)
-    return replace(placed_result, timings={**result.timings,
-                                           "clocks": time.perf_counter() - t_start})
+    return on_clocks(result, kept_placements(placed, options, result),
+                     checked=checked is not None)
 
 
 def clocks_and_offsets(
@@ -476,20 +475,15 @@ def clocks_and_offsets(
     ``checked`` as :func:`clocked` takes them."""
     if not options.stream_offsets:
         return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)
-    t_start = time.perf_counter()
     placed = placements(solved, options, graph, auto_noise=auto_noise, checked=checked)
     offsets = None
     if placed:
         offsets = clock_offsets(capture, on_clocks(graph, placed, checked=checked is not None))
     if offsets is None:
-        result = on_clocks(graph, kept_placements(placed, options, graph),
-                           checked=checked is not None)
-        return replace(result, timings={**graph.timings,
-                                        "clocks": time.perf_counter() - t_start})
+        return on_clocks(graph, kept_placements(placed, options, graph),
+                         checked=checked is not None)
     result = clocked(without_offsets(solved, offsets), options, graph, auto_noise=auto_noise,
                      checked=None if checked is None else without_offsets(checked, offsets))
-    result = replace(result, timings={**result.timings,
-                                      "clocks": time.perf_counter() - t_start})
     if result.clock is None:
         return result
     offsets[np.isnan(result.clock)] = 0.0  # only where the points are on the clocks
@@ -503,17 +497,17 @@ def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
     them, the outliers left out; 0 elsewhere), or None where there are none or they do not
     predict the frames they were not estimated on; logged when estimated. ``capture``: the
     solver's input."""
-    on_clocks = np.isfinite(result.clock)
+    placed = np.isfinite(result.clock)
     X_pred = np.full(result.X.shape, np.nan)
-    for e in np.unique(result.events[on_clocks]):
-        idx = np.flatnonzero(on_clocks & (result.events == e))
+    for e in np.unique(result.events[placed]):
+        idx = np.flatnonzero(placed & (result.events == e))
         X_pred[idx] = chain_predicted(result.W[idx][:, idx], result.clock[idx], result.X[idx])
     found = stream_offsets(capture if result.solved is None else result.solved, X_pred,
                            outlier_arrays(result)[0])
     if found is None:
         return None
     offsets, before, after = found
-    offsets[~on_clocks] = 0.0
+    offsets[~placed] = 0.0
     size = np.linalg.norm(offsets, axis=2)
     if not size.any():
         return None
