@@ -31,7 +31,14 @@ from .columns import (
 from .core.bias import per_stream
 from .core.capture import Capture, project
 from .core.result import Result
-from .core.sync import Fps, check_fps, stream_clocks, sync_report, times_in_unit
+from .core.sync import (
+    Fps,
+    capture_fps,
+    check_fps,
+    stream_clocks,
+    sync_report,
+    times_in_unit,
+)
 from .errors import InputError
 from .io import atomic_path, check_output, save_npz
 from .mocap_export import write_mocap
@@ -288,8 +295,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     parameters, stage timings, ...) are merged into ``report.json``. TRC / C3D / wide CSV:
     ``mocap_export.write_mocap`` (``export_rate`` samples per reference frame; markers
     ``s<subject>_<name>`` with several subjects). ``fps``: the streams' frame rates (one for
-    all or per stream id; ``core.sync``), for ``sequence.csv``'s times in seconds and the
-    report's ``sync``. Returns the report.
+    all or per stream id; ``core.sync``; default the capture's own, ``Capture.fps``), for
+    ``sequence.csv``'s times in seconds and the report's ``sync``. Returns the report.
     """
     detection_subject = detection_subjects(capture, result)
     capture = solved_capture(capture, result)
@@ -368,6 +375,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     times, mocap = write_mocap(folder, capture, replace(result, X=X),
                                column_labels(result, layout_names), export_rate=export_rate)
     check_fps(fps, capture.stream_ids)
+    fps = capture_fps(capture) if fps is None else fps
     sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"]), fps)
     times = times_in_unit(times, result.events, sync, fps)
 

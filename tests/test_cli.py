@@ -119,6 +119,12 @@ def blind_image(x):
         ({"stream": lambda s: np.zeros_like(s)}, "one stream"),
         ({"x": blind_image}, "image 5 ('cam0/00005') observes no point"),
         ({"x": lambda x: np.where(np.isnan(x), x, np.inf)}, "infinite"),
+        ({"fps": lambda f: f[:-1]}, "field 'fps' must have shape"),
+        ({"fps": lambda f: np.where(np.arange(f.size) == 4, -1.0, f)},
+         "field 'fps' must be a positive frame rate or NaN (unknown), got -1 for image 4 "
+         "('cam0/00004')"),
+        ({"fps": lambda f: np.where(np.arange(f.size) == 2, 31.0, f)},
+         "field 'fps' holds several rates for stream 0 (30, 31)"),
     ],
 )
 def test_bad_captures_exit_2_and_write_nothing(capture_file, tmp_path, changes, message):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,9 +13,10 @@ import pytest
 from dloe_sfm import reconstruct
 from dloe_sfm.cli import main as cli_main
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.sync import check_fps
+from dloe_sfm.core.sync import capture_fps, check_fps, with_fps
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import export_outputs
+from dloe_sfm.io import load_capture, save_capture
 from dloe_sfm.stages.sync import parse_fps
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
@@ -24,12 +26,18 @@ OFFSET_TOLERANCE = 0.1
 
 
 @pytest.fixture(scope="module")
-def solved(assets_dir, tmp_path_factory):
-    """Walking at four rates from random start times, solved with default options and exported
-    with the true frame rates."""
+def walking(assets_dir):
+    """Walking at four rates from random start times (the capture knows its frame rates)."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    capture, truth = simulate(seq, SimulationSettings(rates=RATES, random_offsets=True,
-                                                      duration=1.5, seed=1))
+    return simulate(seq, SimulationSettings(rates=RATES, random_offsets=True, duration=1.5,
+                                            seed=1))
+
+
+@pytest.fixture(scope="module")
+def solved(walking, tmp_path_factory):
+    """The walk with its frame rates unknown, solved with default options and exported with
+    the true frame rates (``--fps``)."""
+    capture, truth = replace(walking.capture, fps=None), walking.truth
     result = reconstruct(capture, Options())
     out = tmp_path_factory.mktemp("sync") / "out"
     fps = {k: r for k, r in enumerate(RATES)}
@@ -61,6 +69,36 @@ def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solve
         assert clock["offset_ms"] == pytest.approx(1000 * clock["offset_frames"] / RATES[ref])
         assert abs(clock["implied_fps"] - RATES[int(name)]) < 3 * RATES[ref] * clock["rate_sd"]
     assert event["base"] in ("clock", "affine embedding")
+
+
+def test_the_captures_frame_rates_give_seconds_without_fps(walking, solved, tmp_path):
+    """A capture that knows its frame rates (``fps``, as ``simulate`` writes) is solved as one
+    that does not, and its report counts seconds without ``--fps``, with the same offsets."""
+    capture, _ = walking
+    report = export_outputs(tmp_path / "out", capture, reconstruct(capture, Options()),
+                            plots=False)
+    assert report["time_unit"] == "s"
+    told = solved[3]["sync"]["events"][0]["streams"]
+    for name, clock in report["sync"]["events"][0]["streams"].items():
+        assert clock["fps"] == RATES[int(name)]
+        assert clock["offset_ms"] == pytest.approx(told[name]["offset_ms"], abs=1e-6)
+
+
+def test_frame_rates_go_into_the_capture_and_round_trip(walking, tmp_path):
+    """``--fps`` fills or replaces a capture's frame rates per stream (never a lone photo's),
+    and the capture file keeps them."""
+    capture = walking.capture
+    unknown = replace(capture, fps=None)
+    assert capture_fps(unknown) is None
+    assert capture_fps(capture) == dict(enumerate(RATES))
+    assert (with_fps(unknown, 25.0).fps == 25.0).all()
+    changed = with_fps(capture, {1: 50.0})
+    assert capture_fps(changed) == {0: 24.0, 1: 50.0, 2: 29.97, 3: 30.0}
+    photos = with_fps(replace(unknown, stream=np.where(np.arange(capture.num_images) < 2, -1,
+                                                          capture.stream)), 30.0)
+    assert np.isnan(photos.fps[:2]).all() and (photos.fps[2:] == 30.0).all()
+    loaded = load_capture(save_capture(tmp_path / "capture.npz", changed))
+    np.testing.assert_array_equal(loaded.fps, changed.fps)
 
 
 def test_sequence_times_are_seconds_with_fps(solved):

@@ -17,7 +17,7 @@ if TYPE_CHECKING:
 logger = logging.getLogger("dloe_sfm")
 
 REQUIRED_KEYS = ("x", "K", "R", "C")
-OPTIONAL_KEYS = ("stream", "frame", "confidence", "image_names", "symmetric_pairs")
+OPTIONAL_KEYS = ("stream", "frame", "fps", "confidence", "image_names", "symmetric_pairs")
 ROTATION_TOLERANCE = 1e-3
 """Largest deviation of a rotation from orthonormal (``|R R^T - I|``, ``|det R - 1|``) that is
 accepted and projected to SO(3); files written with single precision or rounded text are
@@ -31,7 +31,7 @@ def field_shapes(x_shape: tuple[int, ...]) -> dict[str, tuple[int, ...]]:
     """The shape every per-image field must have given the shape of ``x``."""
     n = x_shape[0]
     return {"K": (n, 3, 3), "R": (n, 3, 3), "C": (n, 3), "stream": (n,), "frame": (n,),
-            "image_names": (n,), "confidence": tuple(x_shape[:-1])}
+            "fps": (n,), "image_names": (n,), "confidence": tuple(x_shape[:-1])}
 
 
 def rotation_deviation(R: np.ndarray) -> np.ndarray:
@@ -84,6 +84,10 @@ class Capture:
         Stream (video / camera) id; -1 = lone photo (each becomes a stream of its own).
     frame : (N,) int
         Frame index inside its stream (compared only within a stream).
+    fps : (N,) float or None
+        Frame rate of the image's stream (a video's nominal rate, from its file or ``--fps``),
+        one value per stream; NaN = unknown. The exports count time in seconds with it
+        (``core.sync``); the clock fit does not use it (docs/method.md, "Known frame rates").
     confidence : (N, P) or (N, M, P) float or None
         Detector scores in [0, 1]; 0 / NaN = not observed. Used as observation weights.
     image_names : (N,) str
@@ -100,6 +104,7 @@ class Capture:
     C: np.ndarray
     stream: np.ndarray | None = None
     frame: np.ndarray | None = None
+    fps: np.ndarray | None = None
     confidence: np.ndarray | None = None
     image_names: np.ndarray | None = None
     symmetric_pairs: np.ndarray | None = None
@@ -117,6 +122,8 @@ class Capture:
             self.frame = np.zeros(n, dtype=np.int64)
         self.stream = _integers(self.stream)
         self.frame = _integers(self.frame)
+        if self.fps is not None:
+            self.fps = np.asarray(self.fps, dtype=np.float64)
         if self.confidence is not None:
             self.confidence = np.asarray(self.confidence, dtype=np.float64)
         if self.image_names is None:
@@ -157,7 +164,7 @@ class Capture:
                 f"got {x.shape}"
             )
         shapes = field_shapes(x.shape)
-        for name in ("K", "R", "C", "stream", "frame", "image_names", "confidence"):
+        for name in ("K", "R", "C", "stream", "frame", "fps", "image_names", "confidence"):
             arr = getattr(self, name)
             if arr is not None and arr.shape != shapes[name]:
                 raise InputError(
@@ -214,7 +221,25 @@ class Capture:
             frames = self.frame[self.stream == s]
             if np.unique(frames).size != frames.size:
                 raise InputError(f"{source}: stream {s} has repeated values in field 'frame'")
+        self._check_fps(source)
         return self._with_rotations(source)
+
+    def _check_fps(self, source: str) -> None:
+        """Every ``fps`` positive (or NaN, unknown) and one value per stream."""
+        if self.fps is None:
+            return
+        fps = self.fps
+        bad = ~(np.isnan(fps) | (np.isfinite(fps) & (fps > 0)))
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"{source}: field 'fps' must be a positive frame rate or NaN "
+                             f"(unknown), got {fps[i]:g} for image {self._name(i)}")
+        for s in np.unique(self.stream[self.stream >= 0]):
+            rates = fps[self.stream == s]
+            if not (np.array_equal(rates, np.full_like(rates, rates[0]), equal_nan=True)):
+                raise InputError(f"{source}: field 'fps' holds several rates for stream {s} "
+                                 f"({', '.join(f'{r:g}' for r in np.unique(rates))}); a "
+                                 "stream has one")
 
     def _check_intrinsics(self, source: str) -> None:
         """Positive focal lengths and a (0, 0, 1) bottom row (pinhole K) in every image."""
@@ -308,6 +333,7 @@ class Capture:
             C=self.C[idx],
             stream=self.stream[idx],
             frame=self.frame[idx],
+            fps=None if self.fps is None else self.fps[idx],
             confidence=None if self.confidence is None else self.confidence[idx],
             image_names=self.image_names[idx],
             symmetric_pairs=self.symmetric_pairs,

@@ -330,7 +330,7 @@ def fit_clocks(
         a0 = [np.median(t0[inv == s] - rates[s] * f[inv == s]) for s in free]
         return np.concatenate([a0, rates[free]])
 
-    base = np.median(t0[inv == ref] - own[ref] * f[inv == ref]) + own[ref] * f * (inv == ref)
+    base = (np.median(t0[inv == ref] - own[ref] * f[inv == ref]) + own[ref] * f) * (inv == ref)
 
     def times(x: np.ndarray) -> np.ndarray:
         return base + dt @ x

@@ -128,7 +128,8 @@ def aggregate(capture: Capture, assignment: np.ndarray) -> Capture:
         pairs = np.concatenate([pairs + k * p for k in range(s)])
     return Capture(
         x=x.reshape(n, s * p, 2), K=capture.K, R=capture.R, C=capture.C,
-        stream=capture.stream, frame=capture.frame, confidence=conf.reshape(n, s * p),
+        stream=capture.stream, frame=capture.frame, fps=capture.fps,
+        confidence=conf.reshape(n, s * p),
         image_names=capture.image_names, symmetric_pairs=pairs,
         image_ids=capture.image_ids,
     )

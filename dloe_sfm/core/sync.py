@@ -20,6 +20,8 @@ least squares of the times on the frames, with its standard errors.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..errors import InputError
@@ -117,6 +119,30 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
                                    "rate_sd": b_sd, "base": summary["base"],
                                    "images": int((streams == s).sum())}
     return out
+
+
+def capture_fps(capture: Capture) -> Fps:
+    """The frame rates ``capture`` knows (``Capture.fps``), per stream id, or None."""
+    if capture.fps is None:
+        return None
+    ids = capture.stream_ids
+    known = np.isfinite(capture.fps)
+    return {int(s): float(capture.fps[ids == s][0]) for s in np.unique(ids[known])} or None
+
+
+def with_fps(capture: Capture, fps: Fps) -> Capture:
+    """``capture`` with the frame rates of ``fps`` (one for every stream or per stream id,
+    checked by :func:`check_fps`) replacing its own for those streams; lone photos have
+    none."""
+    if fps is None:
+        return capture
+    ids = capture.stream_ids
+    known = np.full(ids.size, np.nan) if capture.fps is None else capture.fps.copy()
+    for s in np.unique(ids[capture.stream >= 0]):
+        rate = stream_fps(fps, int(s))
+        if rate is not None:
+            known[ids == s] = rate
+    return replace(capture, fps=known)
 
 
 def check_fps(fps: Fps, streams: np.ndarray) -> None:

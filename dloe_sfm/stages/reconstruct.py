@@ -15,7 +15,7 @@ from ..colmap import load_workspace
 from ..config import load_options
 from ..core.options import Options
 from ..core.solver import reconstruct
-from ..core.sync import Fps, check_fps
+from ..core.sync import Fps, capture_fps, check_fps, with_fps
 from ..errors import InputError
 from ..io import check_output
 from ..keypoints import FORMATS, Layout, load_layout, read_keypoints
@@ -66,8 +66,8 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     DICT_4X4_50); only for ``aruco``.
     ``export_rate``: samples per reference-stream frame of ``trajectories.trc`` / ``.c3d``
     (``mocap_export``; default the fastest stream's rate).
-    ``fps``: the streams' frame rates, one for all or per stream id (``core.sync``): times in
-    seconds, offsets in ms.
+    ``fps``: the streams' frame rates, one for all or per stream id (``core.sync``), replacing
+    the capture's own: times in seconds, offsets in ms.
     ``out`` is checked first (``io.check_output``: never an input, an existing folder only
     replaced with ``overwrite`` and when dloe-sfm wrote it, writable) and written atomically:
     on any error nothing is left at ``out``. Returns ``out``.
@@ -97,6 +97,7 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
                                                  min_score=min_score, person=person)
     timings["build_capture"] = time.perf_counter() - tic
     check_fps(fps, capture.stream_ids)
+    capture = with_fps(capture, fps)
 
     tic = time.perf_counter()
     check_solve_memory(capture, options, workspace)
@@ -124,6 +125,7 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
             "unregistered_images": list(ws.unregistered),
             "skipped_images": list(skipped),
             "unobserved_points": [kp.layout.point_names[j] for j in unobserved],
+            "fps": capture_fps(capture),
         },
         "parameters": options.to_dict(),
         "timings": timings,
@@ -132,7 +134,7 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     from ..export import export_outputs  # open3d is slow to import: only when writing
 
     export_outputs(out, capture, result, workspace=ws, layout=layout, report=report,
-                   overwrite=overwrite, plots=plots, export_rate=export_rate, fps=fps)
+                   overwrite=overwrite, plots=plots, export_rate=export_rate)
     return out
 
 

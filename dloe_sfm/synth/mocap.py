@@ -210,6 +210,11 @@ def _ring_radius(s: SimulationSettings, points: np.ndarray, centre: np.ndarray) 
     return max(3.0, float(np.linalg.norm((points - centre)[:, [0, 2]], axis=1).max()) + 2.0)
 
 
+def _rates(s: SimulationSettings) -> tuple[float, ...]:
+    """Frames per second of every stream."""
+    return s.rates or (s.rate,) * s.num_streams
+
+
 def _stream_samples(
     span: float, fps: float, s: SimulationSettings, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -217,7 +222,7 @@ def _stream_samples(
     ``s.rate`` with start offsets k / num_streams of a period (or each at its own ``s.rates``
     from a random time in its first period: ``s.random_offsets``), minus ``s.drop`` of the
     images."""
-    rates = s.rates or (s.rate,) * s.num_streams
+    rates = _rates(s)
     times, streams, frames = [], [], []
     for k in range(s.num_streams):
         period = fps / rates[k]
@@ -281,7 +286,8 @@ def _render(
                                                 pairs, rng, np.isfinite(x).all(axis=-1))
     names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=True)])
     capture = Capture(
-        x=x, K=K, R=R, C=C, stream=stream, frame=frame, image_names=names,
+        x=x, K=K, R=R, C=C, stream=stream, frame=frame, fps=np.array(_rates(s))[stream],
+        image_names=names,
         confidence=confidence, symmetric_pairs=pairs,
     )
     truth = GroundTruth(X=X_true, t=t, x_clean=x_clean, events=events, outliers=outliers,
@@ -292,8 +298,9 @@ def _render(
 def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> Simulated:
     """Sample ``seq`` with unsynchronised streams: the capture and its ground truth.
 
-    Images are stored stream by stream in frame order (as videos are), never in time order.
-    Truth: ``X`` (N, P, 3) metres, ``t`` (N,) seconds, ``x_clean`` (N, P, 2) pixels before noise
+    Images are stored stream by stream in frame order (as videos are), never in time order,
+    with their stream's nominal frame rate as ``fps`` (as a video's file gives it). Truth:
+    ``X`` (N, P, 3) metres, ``t`` (N,) seconds, ``x_clean`` (N, P, 2) pixels before noise
     and removal, ``parents``; with ``detector``, ``outliers`` (N, P) and ``swaps`` (N, K) of the
     capture's ``symmetric_pairs``, and the simulated scores as ``confidence``.
     """
