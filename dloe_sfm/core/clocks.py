@@ -13,8 +13,10 @@ Jacobian. The residual has local minima a sampling interval apart, and the fit a
 one: before it, the clocks are fitted on knots four times wider (where those minima smooth out,
 so a first guess periods off gets back), then the offsets searched on a grid over +-1/2 frame
 period per stream. The last fit's residual is summed over knot spacings of 2-5 sampling
-intervals of the merged streams: no single spacing suits every motion. The measurements
-behind these choices: docs/method.md, "Stream clocks".
+intervals of the merged streams: no single spacing suits every motion. Optionally each stream's
+rays of each point take a constant offset, fitted with the trajectories (a detector's bias in
+that view). The measurements behind these choices: docs/method.md, "Stream clocks" and
+"Offsets fitted with the clocks".
 
 Cost: a spline fit is one banded Cholesky factorisation of the points' normal equations, linear
 in the observations (:class:`_SplineFit`); Levenberg-Marquardt sees the Kaufman Jacobian through
@@ -55,6 +57,9 @@ GRID_SLOTS = 8000
 images; docs/method.md, "Stream clocks")..."""
 GRID_IMAGES = 2000
 """...and the middle this many images in the first-guess time order (all of them in the fit)."""
+OFFSET_MIN_OBS = 10
+"""A stream's observations of a point (other than the reference stream's) carry their own
+offset in the fit when there are at least this many of them (:class:`_Offsets`)."""
 OUT_OF_RANGE = 1e150
 """The fit's cost at clocks that put an image before the splines' first knot (a wild trial step
 of Levenberg-Marquardt): far above any real cost, so the step is rejected and shortened."""
@@ -145,6 +150,26 @@ def _rays(E: np.ndarray, rhs: np.ndarray, visible: np.ndarray) -> _Rays:
     return _Rays(img, pt, e, r, normal, pull)
 
 
+class _Offsets(NamedTuple):
+    """Which observations carry an offset of their own in the fit: a detector places a joint
+    a few pixels off, the same way in every frame of one camera, and along the motion that
+    offset reads as a time shift. Each (stream, point) with enough observations
+    (:data:`OFFSET_MIN_OBS`) takes a constant offset along its rays' two normals, fitted with
+    the trajectories; the reference stream's rays keep none (they fix where the points are)."""
+
+    stream: np.ndarray
+    """(N,) every image's stream among the S streams with offsets, -1 for the reference."""
+    active: np.ndarray
+    """(S, P) the (stream, point) offsets fitted."""
+
+
+def _offsets(stream: np.ndarray, visible: np.ndarray, count: int) -> _Offsets:
+    """:class:`_Offsets` of images in ``stream`` (N,) (0 to ``count`` - 1, -1 the reference)
+    observing the ``visible`` (N, P) points."""
+    seen = np.stack([visible[stream == s].sum(axis=0) for s in range(count)])
+    return _Offsets(stream, seen >= OFFSET_MIN_OBS)
+
+
 def _banded_solver(bands: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """Solver of the symmetric positive definite system in lower banded storage ``bands``
     (``bands[i - j, j] = G[i, j]``): banded Cholesky, or SuperLU (which pivots) when rounding
@@ -161,17 +186,23 @@ def _banded_solver(bands: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
 
 class _SplineFit:
     """Every point's least-squares cubic B-spline trajectory on its rays at times ``t``
-    (:func:`spline_residuals`): ``beta`` (P, B, 3) the coefficients, ``res`` (2M,) the residuals.
+    (:func:`spline_residuals`): ``beta`` (P, B, 3) the coefficients, ``res`` (2M,) the residuals;
+    with ``offsets`` (:class:`_Offsets`) also ``g`` (2S, P), every (stream, point)'s offset
+    along its rays' two normals (row ``2 s + a``; 0 where not fitted).
 
     ``beta`` solves ``G beta = A^T rhs``, ``G = A^T A + ridge I``, A the design (rows: the
     observations' normals; columns: point, basis, coordinate), which is never formed. G is block
     diagonal over points and banded (lower bandwidth 11): it is accumulated from the images'
     B-spline products and the rays' normal products, and factorised once by banded Cholesky.
-    Products with A and A^T go through the (N, B) collocation matrix.
+    Products with A and A^T go through the (N, B) collocation matrix. The offsets add columns
+    ``-S`` to the design (an observation's weight in its (stream, point, normal) column):
+    eliminated through their diagonal ``H = S^T S + ridge``, they leave G less a low-rank term
+    per point, solved by Woodbury with one banded solve per (stream, normal) for all points.
     """
 
     def __init__(
-        self, t: np.ndarray, rays: _Rays, spacing: float, start: float, ridge: float = 1e-9
+        self, t: np.ndarray, rays: _Rays, spacing: float, start: float, ridge: float = 1e-9,
+        offsets: _Offsets | None = None
     ) -> None:
         n, p = rays.pull.shape[:2]
         u = (t - start) / spacing
@@ -198,18 +229,94 @@ class _SplineFit:
                         K[shift, : nb - shift, :, _SYMMETRIC[c, d]].T
                     )
         bands[0] += ridge
-        self.solve = _banded_solver(bands.reshape(12, -1))
+        self.solve_banded = _banded_solver(bands.reshape(12, -1))
         self.rays, self.spacing, self.ridge = rays, spacing, ridge
         self.b, self.db, self.active = b, db, active
+        self.offsets = offsets
+        if offsets is not None:
+            self._eliminate(offsets)
         right = (self.basis.T @ rays.pull.reshape(n, -1)).reshape(nb, p, 3).swapaxes(0, 1)
-        self.beta = self.solve(right.ravel()).reshape(p, nb, 3)
+        pull = None
+        if offsets is not None:
+            pull = -self._group_sums(rays.rhs * self.weight[:, None], np.ones((n, 1)))[0]
+        beta, g = self.solve(right.reshape(1, -1), None if pull is None else pull[None])
+        self.beta = beta.reshape(p, nb, 3)
+        self.g = None if g is None else g[0]
         at = (self.basis @ self.beta.swapaxes(0, 1).reshape(nb, -1)).reshape(n, p, 3)
-        self.res = (np.einsum("oac,oc->oa", rays.e, at[rays.img, rays.pt]) - rays.rhs).ravel()
+        res = np.einsum("oac,oc->oa", rays.e, at[rays.img, rays.pt]) - rays.rhs
+        if self.g is not None:
+            res -= self._at_groups(self.g[None])[0]
+        self.res = res.ravel()
 
-    def tangent(self, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """With the coefficients held, the residuals' derivative ``D`` in q clock parameters
-        (``dt`` (N, q) the times'): (M, 2) ``along`` (``D = along dt``), (q, P B 3) ``A^T D``
-        and ``G^-1 A^T D``."""
+    def _eliminate(self, offsets: _Offsets) -> None:
+        """The offsets' columns ``U = A^T S`` packed per (stream, normal) over all points,
+        ``H``, ``Z = G^-1 U`` and every point's Woodbury capacitance ``H - U^T Z``, inverted."""
+        rays, (n, nb) = self.rays, self.basis.shape
+        p, m = rays.pull.shape[1], 2 * offsets.active.shape[0]
+        stream = offsets.stream[rays.img]
+        grouped = stream >= 0
+        grouped[grouped] = offsets.active[stream[grouped], rays.pt[grouped]]
+        self.grouped = grouped  # (M,) observations with an offset
+        self.weight = np.where(grouped, np.linalg.norm(rays.e[:, 0], axis=1), 0.0)
+        self.H = self._group_sums(self.weight[:, None] ** 2 * np.ones((1, 2)), np.ones((n, 1)))[0]
+        self.H = np.where(offsets.active.repeat(2, axis=0), self.H + self.ridge, 1.0)
+        # the collocation matrix with every stream's bases apart: (N, S B)
+        expanded = sp.csr_matrix(
+            (np.where(offsets.stream[:, None] >= 0, self.b, 0.0).ravel(),
+             (np.maximum(offsets.stream, 0)[:, None] * nb + self.active).ravel(),
+             4 * np.arange(n + 1)), shape=(n, m // 2 * nb))
+        Q = np.zeros((n, p, 2, 3))
+        Q[rays.img, rays.pt] = self.weight[:, None, None] * rays.e
+        U = (expanded.T @ Q.reshape(n, -1)).reshape(m // 2, nb, p, 2, 3)
+        # per point: U (P, 2S, B 3) and Z = G^-1 U
+        self.U = np.ascontiguousarray(U.transpose(2, 0, 3, 1, 4).reshape(p, m, -1))
+        Z = self.solve_banded(self.U.swapaxes(0, 1).reshape(m, -1).T).T.reshape(m, p, -1)
+        self.Zt = np.ascontiguousarray(Z.transpose(1, 2, 0))  # (P, B 3, 2S)
+        capacity = np.eye(m) * self.H.T[:, :, None] - self.U @ self.Zt
+        self.capacity_inv = np.linalg.inv(capacity)
+
+    def _group_sums(self, values: np.ndarray, dt: np.ndarray) -> np.ndarray:
+        """(q, 2S, P) ``S^T (values dt)``: every (stream, point, normal) group's sum of its
+        observations' ``values`` (M, 2) (times their weights already) times their images'
+        ``dt`` (N, q)."""
+        offsets, rays, n, p = self.offsets, self.rays, dt.shape[0], self.rays.pull.shape[1]
+        count = offsets.active.shape[0]
+        out = np.zeros((dt.shape[1], 2 * count, p))
+        for a in range(2):
+            T = np.zeros((n, p))
+            T[rays.img, rays.pt] = np.where(self.grouped, values[:, a], 0.0)
+            for s in range(count):
+                rows = offsets.stream == s
+                out[:, 2 * s + a] = dt[rows].T @ T[rows]
+        return out
+
+    def _at_groups(self, g: np.ndarray) -> np.ndarray:
+        """(c, M, 2) ``S g`` of c offset vectors ``g`` (c, 2S, P): every observation's weight
+        times its group's offset."""
+        rays, stream = self.rays, self.offsets.stream[self.rays.img]
+        rows = 2 * np.maximum(stream, 0)[:, None] + np.arange(2)
+        at = g[:, rows, rays.pt[:, None]]  # (c, M, 2)
+        return at * self.weight[None, :, None]
+
+    def solve(self, u: np.ndarray, v: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The normal equations of the coefficients and offsets with right-hand sides ``u``
+        (c, P B 3) and ``v`` (c, 2S, P) (None without offsets): (coefficients, offsets)."""
+        if self.offsets is None:
+            return self.solve_banded(u.T).T, None
+        c, p = u.shape[0], self.U.shape[0]
+        scaled = (v / self.H).transpose(2, 0, 1)  # (P, c, 2S)
+        y = u.reshape(c, p, -1) + (scaled @ self.U).swapaxes(0, 1)
+        x = self.solve_banded(y.reshape(c, -1).T).reshape(p, -1, c)  # (P, B 3, c)
+        beta = x + self.Zt @ (self.capacity_inv @ (self.U @ x))
+        g = (v + (self.U @ beta).transpose(2, 1, 0)) / self.H
+        return beta.transpose(2, 0, 1).reshape(c, -1), g
+
+    def tangent(self, dt: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+        """With the coefficients and offsets held, the residuals' derivative ``D`` in q clock
+        parameters (``dt`` (N, q) the times'): (M, 2) ``along`` (``D = along dt``), ``A^T D``
+        and ``G^-1 A^T D`` with A and G the design and normal matrix of the coefficients and
+        offsets (each a pair: (q, P B 3) the coefficients' part, (q, 2S, P) or None the
+        offsets')."""
         rays, (n, nb), p, q = self.rays, self.basis.shape, self.beta.shape[0], dt.shape[1]
         velocity = np.einsum("ok,okc->oc", self.db[rays.img],
                              self.beta[rays.pt[:, None], self.active[rays.img]]) / self.spacing
@@ -224,28 +331,40 @@ class _SplineFit:
         )
         w = (scaled.T @ normal.reshape(n, -1)).reshape(q, nb, p, 3).swapaxes(1, 2)
         w = w.reshape(q, -1)
-        return along, w, self.solve(w.T).T
+        wg = None if self.offsets is None else -self._group_sums(along * self.weight[:, None], dt)
+        return along, (w, wg), self.solve(w, wg)
 
     def jacobian(self, dt: np.ndarray) -> np.ndarray:
         """(2M, q) Kaufman Jacobian ``D - A G^-1 A^T D`` of the residuals in q clock parameters,
-        ``dt`` (N, q) the times' derivative in them."""
+        ``dt`` (N, q) the times' derivative in them (A, G those of the coefficients and
+        offsets)."""
         rays, (n, nb), p, q = self.rays, self.basis.shape, self.beta.shape[0], dt.shape[1]
-        along, _, y = self.tangent(dt)
+        along, _, (y, yg) = self.tangent(dt)
         y = y.reshape(q, p, nb, 3).transpose(2, 0, 1, 3).reshape(nb, -1)
         at = (self.basis @ y).reshape(n, q, p, 3)[rays.img, :, rays.pt]  # (M, q, 3)
         d = along[..., None] * dt[rays.img][:, None, :]
-        return (d - rays.e @ at.swapaxes(1, 2)).reshape(-1, q)
+        J = d - rays.e @ at.swapaxes(1, 2)
+        if yg is not None:
+            J += self._at_groups(yg).transpose(1, 2, 0)
+        return J.reshape(-1, q)
 
     def gram(self, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``J^T J`` (q, q) and ``J^T res`` (q,) of :meth:`jacobian`'s J without forming it:
-        ``D^T D - (A^T D)^T Y - ridge Y^T Y`` and ``D^T res + ridge Y^T beta``, with
-        ``Y = G^-1 A^T D`` (as ``A^T A = G - ridge I`` and ``A^T res = -ridge beta``)."""
+        ``D^T D - (A^T D)^T Y - ridge Y^T Y`` and ``D^T res + ridge Y^T theta``, with
+        ``Y = G^-1 A^T D`` and theta the coefficients and offsets (as ``A^T A = G - ridge I``
+        and ``A^T res = -ridge theta``)."""
         rays, n = self.rays, dt.shape[0]
-        along, w, y = self.tangent(dt)
+        along, (w, wg), (y, yg) = self.tangent(dt)
         weight = np.bincount(rays.img, (along * along).sum(axis=1), minlength=n)
         pull = np.bincount(rays.img, (along * self.res.reshape(-1, 2)).sum(axis=1), minlength=n)
         jtj = (dt * weight[:, None]).T @ dt - w @ y.T - self.ridge * (y @ y.T)
-        return (jtj + jtj.T) / 2, dt.T @ pull + self.ridge * (y @ self.beta.ravel())
+        jtr = dt.T @ pull + self.ridge * (y @ self.beta.ravel())
+        if yg is not None:
+            q = dt.shape[1]  # offsets not fitted are 0 in y and theta alike
+            wg, yg = wg.reshape(q, -1), yg.reshape(q, -1)
+            jtj = jtj - wg @ yg.T - self.ridge * (yg @ yg.T)
+            jtr = jtr + self.ridge * (yg @ self.g.ravel())
+        return (jtj + jtj.T) / 2, jtr
 
 
 def spline_residuals(
@@ -289,6 +408,7 @@ def fit_clocks(
     visible: np.ndarray,
     *,
     shared_rate: bool = False,
+    offsets: bool = False,
     spacings: tuple[float, ...] = SPACINGS,
     grid_steps: int = GRID_STEPS,
     grid_points: int = GRID_POINTS,
@@ -306,7 +426,10 @@ def fit_clocks(
     offsets and rates (unless ``shared_rate``: freed rates can warp, held ones cannot follow a
     stream whose rate is off), then a grid of ``grid_steps`` per frame period over +-1/2 period
     moves the offsets. The candidate whose grid ends lower is fitted at those rates on all
-    images and points, then, unless ``shared_rate``, with the rates freed too.
+    images and points, then, unless ``shared_rate``, with the rates freed too. With ``offsets``
+    the first and last fits take every (stream, point)'s offset of its rays with the
+    trajectories (:class:`_Offsets`): a detector's offsets otherwise read as time shifts where
+    the motion is steady.
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
@@ -353,6 +476,12 @@ def fit_clocks(
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:max(grid_points,
                                                               GRID_SLOTS // win.size)]
     grid_rays = _rays(E[win][:, seen], rhs[win][:, seen], visible[win][:, seen])
+    position = np.full(k, -1)
+    position[free] = np.arange(free.size)
+    window_offsets = all_offsets = None
+    if offsets:
+        window_offsets = _offsets(position[inv[win]], visible[win][:, seen], free.size)
+        all_offsets = _offsets(position[inv], visible, free.size)
 
     def fitted(x: np.ndarray, cols: np.ndarray, fits: Callable[[np.ndarray], list[_SplineFit]],
                rows: np.ndarray, first: float, norms: list[float],
@@ -418,10 +547,11 @@ def fit_clocks(
 
     def coarse(z: np.ndarray) -> list[_SplineFit]:
         """The first stage's spline fit at clocks ``z``."""
-        return [_SplineFit(times(z)[win], grid_rays, COARSE_KNOTS * h_mid, grid_start)]
+        return [_SplineFit(times(z)[win], grid_rays, COARSE_KNOTS * h_mid, grid_start,
+                           offsets=window_offsets)]
 
-    offsets = np.arange(free.size)
-    freed = [offsets] if shared_rate else [offsets, np.arange(offsets.size * 2)]
+    shifts = np.arange(free.size)
+    freed = [shifts] if shared_rate else [shifts, np.arange(shifts.size * 2)]
     found = [grid(fitted(x, cols, coarse, win, grid_start, [1.0]))
              for x in starts for cols in freed]
     x = min(found, key=lambda found: found[1])[0]
@@ -430,12 +560,12 @@ def fit_clocks(
 
     def fine(z: np.ndarray) -> list[_SplineFit]:
         """The last stage's spline fits at clocks ``z``: all images and points, every spacing."""
-        return [_SplineFit(times(z), rays, h, start) for h in hs]
+        return [_SplineFit(times(z), rays, h, start, offsets=all_offsets) for h in hs]
 
     everything = np.arange(t_init.size)
     at_grid = fine(x)
     norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
-    x = fitted(x, offsets, fine, everything, start, norms, at_grid)
+    x = fitted(x, shifts, fine, everything, start, norms, at_grid)
     if not shared_rate:
         x = fitted(x, np.arange(x.size), fine, everything, start, norms)
     t = times(x)

@@ -309,13 +309,14 @@ def soft_on_clocks(
 
 
 def event_clocks(
-    t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options
+    t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options, *, offsets: bool = False
 ) -> np.ndarray | None:
     """One event's stream clocks fitted to the rays of ``prob`` from the first guess ``t0``
-    (``clocks.fit_clocks``; ``options.shared_rate``); None where the rays do not pin them."""
+    (``clocks.fit_clocks``; ``options.shared_rate``; with ``offsets``, each stream's offsets
+    of each point's rays fitted with them); None where the rays do not pin them."""
     E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
     return fit_clocks(t0, prob.streams, frame, E, rhs, prob.visible,
-                      shared_rate=options.shared_rate)
+                      shared_rate=options.shared_rate, offsets=offsets)
 
 
 def outlier_arrays(result: Result) -> tuple[np.ndarray, np.ndarray]:
@@ -350,7 +351,7 @@ class Placement(NamedTuple):
 
 def placements(
     capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
-    checked: Capture | None = None
+    checked: Capture | None = None, offsets: bool = False
 ) -> list[Placement]:
     """Every event of ``result`` that is filmed by videos (two or more streams of three or more
     frames) and whose clocks the rays pin (``core.clocks``), placed on them: the points by the
@@ -361,7 +362,8 @@ def placements(
     (:func:`soft_on_clocks`). With ``checked`` (the capture before the robust weights, swaps
     undone) the observations of every event are judged again against the chain along its
     clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
-    verdict."""
+    verdict. With ``offsets`` the clocks are fitted with each stream's offsets of each point's
+    rays (:func:`event_clocks`)."""
     n = capture.num_images
     rejected, residual = outlier_arrays(result)
     placed = []
@@ -375,7 +377,7 @@ def placements(
         prob = norm.problem
         Xe = norm.to_normal(result.X[idx])
         t0 = affine_time(Xe, prob.streams, sub.frame)
-        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options)
+        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options, offsets=offsets)
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
@@ -392,7 +394,7 @@ def placements(
         if checked is not None:
             csub = checked.subset(idx) if idx.size < n else checked
             t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(csub, ticked, norm, t, Xe,
-                                                                   rej_e)
+                                                                   rej_e, offsets=offsets)
             if weights is not None:  # both models are judged on the clocks' verdict
                 judged, held = reweighted(csub, weights), None
         placed.append(Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged,
@@ -449,13 +451,15 @@ def on_clocks(result: Result, placed: list[Placement], *, checked: bool) -> Resu
 
 def clocked(
     capture: Capture, options: Options, result: Result, *, auto_noise: bool = False,
-    checked: Capture | None = None
+    checked: Capture | None = None, offsets: bool = False
 ) -> Result:
     """``result`` with every event that is filmed by videos placed on its streams' fitted
     affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
     (:func:`kept_placements`); an event whose clocks the rays do not pin keeps DLOE's graph.
-    ``outliers`` follow the events that keep their clocks."""
-    placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked)
+    ``outliers`` follow the events that keep their clocks. ``offsets``: as
+    :func:`placements` takes it."""
+    placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked,
+                        offsets=offsets)
     return on_clocks(result, kept_placements(placed, options, result),
                      checked=checked is not None)
 
@@ -468,11 +472,15 @@ def clocks_and_offsets(
 
     The offsets are estimated (:func:`clock_offsets`) with every event whose clocks the rays
     pin on them, before the held-out check. Where they predict, they are taken out of the
-    observations and the events placed and judged again on the detections without them;
-    ``solved`` and ``offset_px`` of the result hold them where its points are on clocks. Else,
-    or without ``options.stream_offsets``, the placements are judged on the detections as they
-    are. ``capture``: the solver's input; ``solved``, the capture it was solved on and
-    ``checked`` as :func:`clocked` takes them."""
+    observations and the events placed and judged again on the detections without them, the
+    clocks fitted with each stream's offsets of each point's rays: the first clocks took part
+    of the detections' offsets as time shifts (the offsets estimated along them keep that
+    part), and fitted together the two come apart where the motion's speed changes
+    (docs/method.md, "Offsets fitted with the clocks"); ``solved`` and ``offset_px`` of the
+    result hold them where its points are on clocks. Else, or without
+    ``options.stream_offsets``, the placements are judged on the detections as they are.
+    ``capture``: the solver's input; ``solved``, the capture it was solved on and ``checked``
+    as :func:`clocked` takes them."""
     if not options.stream_offsets:
         return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)
     placed = placements(solved, options, graph, auto_noise=auto_noise, checked=checked)
@@ -483,7 +491,8 @@ def clocks_and_offsets(
         return on_clocks(graph, kept_placements(placed, options, graph),
                          checked=checked is not None)
     result = clocked(without_offsets(solved, offsets), options, graph, auto_noise=auto_noise,
-                     checked=None if checked is None else without_offsets(checked, offsets))
+                     checked=None if checked is None else without_offsets(checked, offsets),
+                     offsets=True)
     if result.clock is None:
         return result
     offsets[np.isnan(result.clock)] = 0.0  # only where the points are on the clocks
@@ -520,7 +529,7 @@ def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
 
 def robust_on_clocks(
     capture: Capture, options: Options, norm: Normalised, t: np.ndarray, X: np.ndarray,
-    rejected: np.ndarray
+    rejected: np.ndarray, *, offsets: bool = False
 ) -> tuple[
     np.ndarray, sp.csr_matrix, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None
 ]:
@@ -532,7 +541,8 @@ def robust_on_clocks(
     placed again by the X-step on the chain, until the rejected set holds (at most
     ``robust_iterations`` times). A wrong detection the graph missed is pinned to its ray with
     exact detections (``noise_px`` 0) and bent the clock fit: the first time such a one is
-    rejected, the clocks are fitted again without it (kept if the rays pin them).
+    rejected, the clocks are fitted again without it (kept if the rays pin them; ``offsets``
+    as :func:`event_clocks` takes it).
 
     ``X`` (N, P, 3) in ``norm``'s frame, ``rejected`` (N, P) the robust rounds' verdict.
     Returns the clocks, the chain's W and D, the points, the rejected set, the residuals in
@@ -558,7 +568,7 @@ def robust_on_clocks(
         prob = build_problem(reweighted(capture, weights), options, norm.origin, norm.scale)
         if refit and (now & ~rejected).any():
             refit = False
-            fitted = event_clocks(t, prob, capture.frame, options)
+            fitted = event_clocks(t, prob, capture.frame, options, offsets=offsets)
             if fitted is not None:
                 t = fitted
                 W, D = time_chain(t)
