@@ -59,19 +59,12 @@ def test_chain_prediction_extrapolates_the_ends():
     assert not np.allclose((W @ X.reshape(5, 3)).reshape(X.shape)[[1, 4]], X[[1, 4]])
 
 
-def test_spline_residuals_match_a_dense_solve(rng):
-    """The banded solve (residuals, Kaufman Jacobian, and the Gram form the fit uses) against
-    the dense design A and ``(A^T A + ridge I)^-1 A^T rhs`` on a tiny capture: 40 images, 3
-    points, a knot every 0.5, the first knot with no data (held by the ridge)."""
-    n, p, spacing, ridge = 40, 3, 0.5, 1e-9
-    t = np.sort(rng.uniform(0.0, 2.0, n))
-    rays = rng.normal(size=(n, p, 3))
-    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    visible = rng.random((n, p)) < 0.8
-    E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), rng.uniform(0.5, 2.0, (n, p)))
-    rhs = rhs + 0.1 * rng.normal(size=rhs.shape)
-    dt = np.stack([np.arange(n) % 2, (np.arange(n) % 2) * np.arange(n)], axis=1).astype(float)
-    start = -0.6
+def _dense_fit(t, E, rhs, visible, spacing, start, ridge, dt, extra=None):
+    """The variable-projection fit solved densely: the design A of every point's cubic
+    B-spline on its rays (rows: the visible observations' two normals), with the columns
+    ``extra`` (2M, K) appended (held by the clocks), ``theta = (A^T A + ridge I)^-1 A^T rhs``,
+    the residuals and the Kaufman Jacobian in the clock parameters of ``dt`` (N, q)."""
+    n, p = visible.shape
     u = (t - start) / spacing
     j = np.floor(u).astype(int)
     nb = j.max() + 4
@@ -84,12 +77,36 @@ def test_spline_residuals_match_a_dense_solve(rng):
             cols = slice((q * nb + j[i] + k) * 3, (q * nb + j[i] + k + 1) * 3)
             A[2 * o : 2 * o + 2, cols] = b[i, k] * E[i, q]
             dA[2 * o : 2 * o + 2, cols] = db[i, k] / spacing * E[i, q]
+    if extra is not None:
+        A, dA = np.hstack([A, extra]), np.hstack([dA, np.zeros_like(extra)])
     G = A.T @ A + ridge * np.eye(A.shape[1])
     y = rhs[img, pt].ravel()
-    beta = np.linalg.solve(G, A.T @ y)
-    res = A @ beta - y
-    D = (dA @ beta)[:, None] * np.repeat(dt[img], 2, axis=0)
-    J = D - A @ np.linalg.solve(G, A.T @ D)
+    theta = np.linalg.solve(G, A.T @ y)
+    res = A @ theta - y
+    D = (dA @ theta)[:, None] * np.repeat(dt[img], 2, axis=0)
+    return theta, res, D - A @ np.linalg.solve(G, A.T @ D)
+
+
+def _random_rays(rng, n, p):
+    """Ray equations of ``n`` images of ``p`` points in random directions from random centres
+    with random weights, 80 % of them visible, the right-hand sides perturbed."""
+    rays = rng.normal(size=(n, p, 3))
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    visible = rng.random((n, p)) < 0.8
+    E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), rng.uniform(0.5, 2.0, (n, p)))
+    return E, rhs + 0.1 * rng.normal(size=rhs.shape), visible
+
+
+def test_spline_residuals_match_a_dense_solve(rng):
+    """The banded solve (residuals, Kaufman Jacobian, and the Gram form the fit uses) against
+    the dense design A and ``(A^T A + ridge I)^-1 A^T rhs`` on a tiny capture: 40 images, 3
+    points, a knot every 0.5, the first knot with no data (held by the ridge)."""
+    n, p, spacing, ridge = 40, 3, 0.5, 1e-9
+    t = np.sort(rng.uniform(0.0, 2.0, n))
+    E, rhs, visible = _random_rays(rng, n, p)
+    dt = np.stack([np.arange(n) % 2, (np.arange(n) % 2) * np.arange(n)], axis=1).astype(float)
+    start = -0.6
+    _, res, J = _dense_fit(t, E, rhs, visible, spacing, start, ridge, dt)
     r, Jb = spline_residuals(t, E, rhs, visible, spacing, start, dt, ridge=ridge)
     assert np.abs(r - res).max() <= 1e-10 * np.abs(res).max()
     assert np.abs(Jb - J).max() <= 1e-10 * np.abs(J).max()
@@ -105,46 +122,26 @@ def test_spline_offsets_match_a_dense_solve(rng):
     first the reference (no offsets); a (stream, point) with too few observations has none."""
     n, p, spacing, ridge = 60, 3, 0.5, 1e-9
     t = np.sort(rng.uniform(0.0, 2.0, n))
-    rays = rng.normal(size=(n, p, 3))
-    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    visible = rng.random((n, p)) < 0.8
+    E, rhs, visible = _random_rays(rng, n, p)
     stream = np.arange(n) % 3 - 1  # -1: the reference
     visible[stream == 1, 2] &= np.arange(n)[stream == 1] < 20  # too few: no offset
-    E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), rng.uniform(0.5, 2.0, (n, p)))
-    rhs = rhs + 0.1 * rng.normal(size=rhs.shape)
     dt = np.stack([stream == 0, (stream == 1) * np.arange(n)], axis=1).astype(float)
     offsets = _offsets(stream, visible, 2)
     assert offsets.active.sum() == 5 and not offsets.active[1, 2]
     start = -0.6
-    u = (t - start) / spacing
-    j = np.floor(u).astype(int)
-    nb = j.max() + 4
-    b, db = _cubic_bspline(u - j)
     img, pt = np.nonzero(visible)
-    spline = p * nb * 3
-    A = np.zeros((2 * img.size, spline + 4 * p))
-    dA = np.zeros_like(A)
+    extra = np.zeros((2 * img.size, 4 * p))
     for o, (i, q) in enumerate(zip(img, pt, strict=True)):
-        for k in range(4):
-            cols = slice((q * nb + j[i] + k) * 3, (q * nb + j[i] + k + 1) * 3)
-            A[2 * o : 2 * o + 2, cols] = b[i, k] * E[i, q]
-            dA[2 * o : 2 * o + 2, cols] = db[i, k] / spacing * E[i, q]
         if stream[i] >= 0 and offsets.active[stream[i], q]:
             for a in range(2):
-                A[2 * o + a, spline + (2 * stream[i] + a) * p + q] = -np.linalg.norm(E[i, q, 0])
-    fitted = np.r_[np.ones(spline, bool), offsets.active.repeat(2, axis=0).ravel()]
-    A, dA = A[:, fitted], dA[:, fitted]
-    G = A.T @ A + ridge * np.eye(A.shape[1])
-    y = rhs[img, pt].ravel()
-    theta = np.linalg.solve(G, A.T @ y)
-    res = A @ theta - y
-    D = (dA @ theta)[:, None] * np.repeat(dt[img], 2, axis=0)
-    J = D - A @ np.linalg.solve(G, A.T @ D)
+                extra[2 * o + a, (2 * stream[i] + a) * p + q] = -np.linalg.norm(E[i, q, 0])
+    fitted = offsets.active.repeat(2, axis=0).ravel()
+    theta, res, J = _dense_fit(t, E, rhs, visible, spacing, start, ridge, dt, extra[:, fitted])
     fit = _SplineFit(t, _rays(E, rhs, visible), spacing, start, ridge, offsets)
     assert np.abs(fit.res - res).max() <= 1e-10 * np.abs(res).max()
-    g = theta[spline:]
-    assert np.abs(fit.g.ravel()[fitted[spline:]] - g).max() <= 1e-10 * np.abs(g).max()
-    assert not fit.g.ravel()[~fitted[spline:]].any()
+    g = theta[-fitted.sum():]
+    assert np.abs(fit.g.ravel()[fitted] - g).max() <= 1e-10 * np.abs(g).max()
+    assert not fit.g.ravel()[~fitted].any()
     assert np.abs(fit.jacobian(dt) - J).max() <= 1e-10 * np.abs(J).max()
     jtj, jtr = fit.gram(dt)
     assert np.abs(jtj - J.T @ J).max() <= 1e-10 * np.abs(J.T @ J).max()

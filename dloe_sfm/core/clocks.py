@@ -476,10 +476,10 @@ def fit_clocks(
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:max(grid_points,
                                                               GRID_SLOTS // win.size)]
     grid_rays = _rays(E[win][:, seen], rhs[win][:, seen], visible[win][:, seen])
-    position = np.full(k, -1)
-    position[free] = np.arange(free.size)
     window_offsets = all_offsets = None
     if offsets:
+        position = np.full(k, -1)  # every stream's place among the free ones
+        position[free] = np.arange(free.size)
         window_offsets = _offsets(position[inv[win]], visible[win][:, seen], free.size)
         all_offsets = _offsets(position[inv], visible, free.size)
 
