@@ -377,6 +377,15 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     check_fps(fps, capture.stream_ids)
     fps = capture_fps(capture) if fps is None else fps
     sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"]), fps)
+    for event in sync["events"]:
+        for s, clock in event["streams"].items():
+            if clock.get("fps_consistent") is False:
+                logger.warning(
+                    "event %d, stream %s: its clock runs at %.3f fps where its frame rate is %g "
+                    "(%+.1f %%, %.0f standard uncertainties): the clock fit may have settled on "
+                    "wrong rates, its offset and times are not to be trusted", event["event"], s,
+                    clock["implied_fps"], clock["fps"], 100 * clock["fps_deviation"],
+                    clock["fps_deviation_sd"])
     times = times_in_unit(times, result.events, sync, fps)
 
     with open(folder / "sequence.csv", "w", newline="") as f:

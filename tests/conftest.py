@@ -1,3 +1,4 @@
+import logging
 import os
 from pathlib import Path
 
@@ -32,3 +33,19 @@ def assets_dir() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(0)
+
+
+@pytest.fixture
+def log_lines() -> list[str]:
+    """Messages of the package logger (a handler of its own: the CLI tests may have turned
+    propagation to the root logger, which caplog listens to, off)."""
+    lines: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda record: lines.append(record.getMessage())
+    logger = logging.getLogger("dloe_sfm")
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    yield lines
+    logger.removeHandler(handler)
+    logger.setLevel(level)

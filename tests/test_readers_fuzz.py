@@ -5,7 +5,6 @@ InputError, never another exception, and no array is allocated from a size a fil
 from __future__ import annotations
 
 import io
-import logging
 import re
 import shutil
 import struct
@@ -111,22 +110,6 @@ def reads(monkeypatch) -> list[tuple]:
 
     monkeypatch.setattr(np.lib.format, "read_array", spy)
     return seen
-
-
-@pytest.fixture
-def log_lines() -> list[str]:
-    """Messages of the package logger (a handler of its own: the CLI tests may have turned
-    propagation to the root logger, which caplog listens to, off)."""
-    lines: list[str] = []
-    handler = logging.Handler(logging.INFO)
-    handler.emit = lambda record: lines.append(record.getMessage())
-    logger = logging.getLogger("dloe_sfm")
-    level = logger.level
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    yield lines
-    logger.removeHandler(handler)
-    logger.setLevel(level)
 
 
 # --- capture files: hypothesis ---

@@ -42,7 +42,7 @@ def solved(walking, tmp_path_factory):
     out = tmp_path_factory.mktemp("sync") / "out"
     fps = {k: r for k, r in enumerate(RATES)}
     report = export_outputs(out, capture, result, plots=False, fps=fps)
-    return capture, truth, out, report
+    return capture, truth, out, report, result
 
 
 def true_offsets(capture, truth, ref: int) -> dict[int, float]:
@@ -53,7 +53,7 @@ def true_offsets(capture, truth, ref: int) -> dict[int, float]:
 
 
 def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solved):
-    capture, truth, _, report = solved
+    capture, truth, _, report, _ = solved
     assert report["time_unit"] == "s"
     event = report["sync"]["events"][0]
     ref = event["reference_stream"]
@@ -68,6 +68,7 @@ def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solve
         assert abs(error) < 3 * clock["offset_sd_frames"], (name, error, clock)
         assert clock["offset_ms"] == pytest.approx(1000 * clock["offset_frames"] / RATES[ref])
         assert abs(clock["implied_fps"] - RATES[int(name)]) < 3 * RATES[ref] * clock["rate_sd"]
+        assert clock["fps_consistent"] and clock["fps_deviation_sd"] < 3, (name, clock)
     assert event["base"] in ("clock", "affine embedding")
 
 
@@ -102,7 +103,7 @@ def test_frame_rates_go_into_the_capture_and_round_trip(walking, tmp_path):
 
 
 def test_sequence_times_are_seconds_with_fps(solved):
-    capture, truth, out, _ = solved
+    capture, truth, out, _, _ = solved
     with open(out / "sequence.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     index = {str(n): i for i, n in enumerate(capture.image_names)}
@@ -137,7 +138,7 @@ def test_unknown_stream_is_named():
 
 
 def test_sync_command_prints_and_round_trips_json(solved, tmp_path, capsys):
-    _, _, out, report = solved
+    _, _, out, report, _ = solved
     target = tmp_path / "sync.json"
     assert cli_main(["sync", str(out), "--json", str(target)]) == 0
     printed = capsys.readouterr().out
@@ -165,6 +166,37 @@ def test_sync_command_prints_and_round_trips_json(solved, tmp_path, capsys):
     assert other.read_text() == "{}"
 
 
+def test_clocks_that_miss_the_known_frame_rates_are_flagged(solved, tmp_path, log_lines, capsys):
+    """Told the 24 and 25 Hz streams run at 30 (as a wrong ``--fps`` would), the report and
+    the sync command flag their clocks, and the export says so; the other streams' clocks
+    match their rates."""
+    capture, _, _, _, result = solved
+    told = dict(enumerate((30.0, 30.0, 29.97, 30.0)))
+    report = export_outputs(tmp_path / "out", capture, result, plots=False, fps=told)
+    event = report["sync"]["events"][0]
+    ref = event["reference_stream"]
+    for name, clock in event["streams"].items():
+        s = int(name)
+        if s == ref:
+            assert "fps_consistent" not in clock
+            continue
+        wrong = RATES[s] != told[s]
+        assert clock["fps_consistent"] is not wrong, (name, clock)
+        if wrong:
+            assert clock["fps_deviation"] == pytest.approx(RATES[s] / told[s] - 1, abs=0.01)
+            span = np.ptp(capture.frame[capture.stream == s])
+            drift = (told[ref] / RATES[s] - told[ref] / told[s]) * span
+            assert clock["fps_drift_frames"] == pytest.approx(drift, rel=0.02)
+            assert any(f"stream {name}: its clock runs at" in line for line in log_lines)
+    assert cli_main(["sync", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert printed.count("  !") == 2 and "not to be trusted" in printed
+    # the sync command's --fps replaces the rates the check is made against
+    assert cli_main(["sync", str(tmp_path / "out"), "--fps", *[f"{k}={r}" for k, r in
+                                                                enumerate(RATES)]]) == 0
+    assert "!" not in capsys.readouterr().out
+
+
 def test_sync_command_errors_are_one_line(tmp_path, capsys):
     for folder, message in ((tmp_path / "missing", "no report.json"),
                             (tmp_path, "cannot read it")):
@@ -175,7 +207,10 @@ def test_sync_command_errors_are_one_line(tmp_path, capsys):
         assert e.value.code == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1
-    (tmp_path / "report.json").write_text(json.dumps({"images": 3}))
-    with pytest.raises(SystemExit):
-        cli_main(["sync", str(tmp_path)])
-    assert "no valid 'sync' entry" in capsys.readouterr().err
+    clock = {"offset_frames": 1.0, "offset_sd_frames": 0.1, "rate": 1.0, "rate_sd": 0.01}
+    for report in ({"images": 3}, {"sync": {"events": [{"streams": {"1": {**clock, "fps": 0}}}]}},
+                   {"sync": {"events": [{"streams": {"1": {**clock, "frame_span": "9"}}}]}}):
+        (tmp_path / "report.json").write_text(json.dumps(report))
+        with pytest.raises(SystemExit):
+            cli_main(["sync", str(tmp_path)])
+        assert "no valid 'sync' entry" in capsys.readouterr().err

@@ -31,6 +31,14 @@ from .clocks import SPACINGS, ray_equations, spline_residuals
 Fps = float | dict[int, float] | None
 """Frame rates: one for every stream, per stream id, or unknown."""
 
+RATE_CHECK_SD = 3.0
+"""A stream's fitted rate further than this many of its standard uncertainties from the ratio
+of the known frame rates, and drifting :data:`RATE_CHECK_DRIFT` or more from it, does not match
+them (``fps_consistent``, :func:`rate_check`)."""
+RATE_CHECK_DRIFT = 0.1
+"""Reference frames of drift from the known frame rates' ratio over a stream's frames below
+which its clock matches them whatever the uncertainty (a miss too small to matter)."""
+
 
 def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
            videos: list[int]) -> dict[int, tuple[float, float, float, float]]:
@@ -86,8 +94,8 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
     ``mocap_export.image_times``. Returns per event its ``event``, ``base``,
     ``reference_stream`` and ``streams``: stream id -> ``offset``, ``offset_sd`` (reference
     frames at the stream's frame 0, relative to the reference's frame 0), ``rate``, ``rate_sd``
-    (reference frames per own frame), ``base`` (the event's), ``images``; streams with fewer
-    than two frames are left out.
+    (reference frames per own frame), ``base`` (the event's), ``images``, ``frame_span`` (its
+    last frame less its first); streams with fewer than two frames are left out.
     """
     stream_ids = capture.stream_ids
     out = []
@@ -117,7 +125,8 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
                 a_sd, b_sd = sd[s]
             entry["streams"][s] = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b,
                                    "rate_sd": b_sd, "base": summary["base"],
-                                   "images": int((streams == s).sum())}
+                                   "images": int((streams == s).sum()),
+                                   "frame_span": int(np.ptp(frames[streams == s]))}
     return out
 
 
@@ -172,7 +181,10 @@ def sync_report(clocks: list[dict], fps: Fps) -> dict:
     ``frame``) and per event the clocks: ``offset`` / ``offset_sd`` in ``time_unit``,
     ``offset_frames`` / ``offset_sd_frames`` in reference frames, where the reference's rate is
     known ``offset_ms`` / ``offset_sd_ms`` and ``implied_fps`` (the reference's rate over
-    ``rate``), and where the stream's own is known ``fps`` (given)."""
+    ``rate``), and where the stream's own is known ``fps`` (given). Where both are known and the
+    rate has an uncertainty (not the reference), the check of the clock against them
+    (:func:`rate_check`): the uncertainty is local (:func:`stream_clocks`), a clock fit caught
+    in a wrong minimum keeps a small one, and the known frame rates are what shows it."""
     refs = [stream_fps(fps, c["reference_stream"]) for c in clocks]
     seconds = bool(refs) and all(r is not None for r in refs)
     events = []
@@ -191,9 +203,27 @@ def sync_report(clocks: list[dict], fps: Fps) -> dict:
             own = stream_fps(fps, s)
             if own is not None:
                 entry["fps"] = own
+                entry.update(rate_check(clock, ref_fps, own))
             streams[str(s)] = entry
         events.append({**c, "reference_fps": ref_fps, "streams": streams})
     return {"time_unit": "s" if seconds else "frame", "events": events}
+
+
+def rate_check(clock: dict, ref_fps: float | None, fps: float) -> dict:
+    """A stream's fitted clock (``rate`` ± ``rate_sd`` reference frames per own frame over
+    ``frame_span`` frames) against its known frame rate ``fps`` and the reference's ``ref_fps``:
+    ``fps_deviation`` (the rate the clock implies over ``fps``, less 1), ``fps_deviation_sd``
+    (the rate's distance from the rates' ratio in ``rate_sd``), ``fps_drift_frames`` (how far
+    the clock drifts from that ratio over the stream's frames, in reference frames) and
+    ``fps_consistent`` (:data:`RATE_CHECK_SD`, :data:`RATE_CHECK_DRIFT`); empty where
+    ``ref_fps`` is unknown or ``rate_sd`` is 0 (the reference stream)."""
+    if ref_fps is None or not clock["rate_sd"] > 0:
+        return {}
+    miss = clock["rate"] - ref_fps / fps
+    sigmas, drift = abs(miss) / clock["rate_sd"], miss * clock["frame_span"]
+    return {"fps_deviation": ref_fps / clock["rate"] / fps - 1.0, "fps_deviation_sd": sigmas,
+            "fps_drift_frames": drift,
+            "fps_consistent": bool(sigmas <= RATE_CHECK_SD or abs(drift) < RATE_CHECK_DRIFT)}
 
 
 def times_in_unit(time: np.ndarray, labels: np.ndarray, report: dict, fps: Fps) -> np.ndarray:

@@ -10,7 +10,7 @@ import math
 import sys
 from pathlib import Path
 
-from ..core.sync import Fps, stream_fps
+from ..core.sync import RATE_CHECK_DRIFT, RATE_CHECK_SD, Fps, rate_check, stream_fps
 from ..errors import InputError
 from ..io import atomic_path, check_not_input
 
@@ -82,20 +82,31 @@ def read_report(folder: Path) -> dict:
     events = sync.get("events") if isinstance(sync, dict) else None
     if not isinstance(events, list) or not all(
             isinstance(e, dict) and isinstance(e.get("streams"), dict)
-            and all(isinstance(c, dict) and all(isinstance(c.get(k), (int, float))
-                                                for k in ("offset_frames", "offset_sd_frames",
-                                                          "rate", "rate_sd"))
-                    for c in e["streams"].values())
-            for e in events):
+            and all(_valid_clock(c) for c in e["streams"].values()) for e in events):
         raise InputError(f"{path}: no valid 'sync' entry (written by dloe-sfm >= the sync "
                          "command's version?)")
     return sync
 
 
+def _valid_clock(clock: object) -> bool:
+    """A stream's entry of a report's ``sync``: its offset and rate numbers, and where present
+    a positive ``fps`` and a ``frame_span`` of at least 0."""
+    if not isinstance(clock, dict):
+        return False
+
+    def number(key: str) -> bool:
+        return isinstance(clock.get(key), (int, float))
+
+    return (all(number(k) for k in ("offset_frames", "offset_sd_frames", "rate", "rate_sd"))
+            and ("fps" not in clock or number("fps") and clock["fps"] > 0)
+            and ("frame_span" not in clock or number("frame_span") and clock["frame_span"] >= 0))
+
+
 def stream_table(sync: dict, fps: Fps = None) -> dict:
     """The JSON written by ``--json``: per event its ``reference_stream``, ``reference_fps`` and
-    ``streams`` (``offset_frames``, ``offset_sd_frames``, ``rate``, ``rate_sd``, ``images``, and
-    with the reference's fps ``offset_s``, ``offset_sd_s``, ``implied_fps``); ``fps`` (as
+    ``streams`` (``offset_frames``, ``offset_sd_frames``, ``rate``, ``rate_sd``, ``images``,
+    with the reference's fps ``offset_s``, ``offset_sd_s``, ``implied_fps``, with the stream's
+    own ``fps`` and the check against it, ``core.sync.rate_check``); ``fps`` (as
     ``parse_fps``) replaces the report's rates. The event with the most images also at the top
     level."""
     events = []
@@ -110,6 +121,11 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
             if ref_fps is not None:
                 entry.update(offset_s=frames / ref_fps, offset_sd_s=sd / ref_fps,
                              implied_fps=ref_fps / c["rate"])
+            own = stream_fps(fps, int(name)) if fps is not None else c.get("fps")
+            if own is not None:
+                entry["fps"] = own
+                if "frame_span" in c:  # reports before the check have none
+                    entry.update(rate_check(c, ref_fps, own))
             streams[name] = entry
         events.append({"event": event.get("event"), "base": event.get("base"),
                        "reference_stream": ref, "reference_fps": ref_fps, "streams": streams})
@@ -133,7 +149,14 @@ def format_table(table: dict) -> str:
                   if "offset_s" in c else "-")
             lines.append(f"  {name:>6} {ms:>20} {c['offset_frames']:+11.4f} ± "
                          f"{c['offset_sd_frames']:8.4f} {c['rate']:8.6f} ± {c['rate_sd']:7.1e}"
-                         f" {c['images'] or 0:>6}")
+                         f" {c['images'] or 0:>6}" + ("  !" if c.get("fps_consistent") is False
+                                                      else ""))
+    if any(c.get("fps_consistent") is False for e in table["events"]
+           for c in e["streams"].values()):
+        lines.append(f"! the clock's rate is more than {RATE_CHECK_SD:g} standard uncertainties "
+                     f"from the known frame rates, {RATE_CHECK_DRIFT:g} frame or more over the "
+                     "stream: the fit may have settled on wrong rates, its offset and times are "
+                     "not to be trusted")
     return "\n".join(lines)
 
 
