@@ -409,6 +409,7 @@ def fit_clocks(
     *,
     shared_rate: bool = False,
     offsets: bool = False,
+    rates: np.ndarray | None = None,
     spacings: tuple[float, ...] = SPACINGS,
     grid_steps: int = GRID_STEPS,
     grid_points: int = GRID_POINTS,
@@ -429,7 +430,8 @@ def fit_clocks(
     images and points, then, unless ``shared_rate``, with the rates freed too. With ``offsets``
     the first and last fits take every (stream, point)'s offset of its rays with the
     trajectories (:class:`_Offsets`): a detector's offsets otherwise read as time shifts where
-    the motion is steady.
+    the motion is steady. ``rates`` (N,), every image's stream's known frame rate: the rates are
+    held at their ratios (one start, through the first-guess times; the offsets alone fitted).
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
@@ -441,9 +443,13 @@ def fit_clocks(
     ids, inv = np.unique(streams, return_inverse=True)
     k = ids.size
     own = np.array([np.polyfit(f[inv == s], t0[inv == s], 1)[0] for s in range(k)])
-    if shared_rate:
-        own[:] = np.median(own)
     ref = int(np.argmax(np.bincount(inv)))
+    if rates is not None:
+        known = np.array([rates[inv == s][0] for s in range(k)])
+        own = own[ref] * known[ref] / known
+    elif shared_rate:
+        own[:] = np.median(own)
+    held = shared_rate or rates is not None
     free = np.flatnonzero(np.arange(k) != ref)
     onehot = (inv[:, None] == free[None, :]).astype(np.float64)
     dt = np.concatenate([onehot, onehot * f[:, None]], axis=1)  # d t / d (offsets, rates)
@@ -458,9 +464,7 @@ def fit_clocks(
     def times(x: np.ndarray) -> np.ndarray:
         return base + dt @ x
 
-    starts = [start_at(np.full(k, np.median(own)))]
-    if not shared_rate:
-        starts.append(start_at(own))
+    starts = [start_at(own)] if held else [start_at(np.full(k, np.median(own))), start_at(own)]
     t_init = times(starts[0])
     interval = float(np.median(np.diff(np.unique(t_init))))
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
@@ -551,7 +555,7 @@ def fit_clocks(
                            offsets=window_offsets)]
 
     shifts = np.arange(free.size)
-    freed = [shifts] if shared_rate else [shifts, np.arange(shifts.size * 2)]
+    freed = [shifts] if held else [shifts, np.arange(shifts.size * 2)]
     found = [grid(fitted(x, cols, coarse, win, grid_start, [1.0]))
              for x in starts for cols in freed]
     x = min(found, key=lambda found: found[1])[0]
@@ -566,7 +570,7 @@ def fit_clocks(
     at_grid = fine(x)
     norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
     x = fitted(x, shifts, fine, everything, start, norms, at_grid)
-    if not shared_rate:
+    if not held:
         x = fitted(x, np.arange(x.size), fine, everything, start, norms)
     t = times(x)
     moved = np.abs(t - np.polyval(np.polyfit(t0, t, 1), t0))  # up to one map of the time line

@@ -309,14 +309,23 @@ def soft_on_clocks(
 
 
 def event_clocks(
-    t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options, *, offsets: bool = False
+    t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options, *, offsets: bool = False,
+    rates: np.ndarray | None = None
 ) -> np.ndarray | None:
     """One event's stream clocks fitted to the rays of ``prob`` from the first guess ``t0``
     (``clocks.fit_clocks``; ``options.shared_rate``; with ``offsets``, each stream's offsets
-    of each point's rays fitted with them); None where the rays do not pin them."""
+    of each point's rays fitted with them; ``rates``, every image's stream's known frame rate,
+    the rates held at their ratios); None where the rays do not pin them."""
     E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
     return fit_clocks(t0, prob.streams, frame, E, rhs, prob.visible,
-                      shared_rate=options.shared_rate, offsets=offsets)
+                      shared_rate=options.shared_rate, offsets=offsets, rates=rates)
+
+
+def known_rates(capture: Capture) -> np.ndarray | None:
+    """(N,) every image's stream's frame rate where ``capture`` knows them all
+    (``Capture.fps``), else None."""
+    fps = capture.fps
+    return fps if fps is not None and np.isfinite(fps).all() else None
 
 
 def outlier_arrays(result: Result) -> tuple[np.ndarray, np.ndarray]:
@@ -363,7 +372,9 @@ def placements(
     undone) the observations of every event are judged again against the chain along its
     clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
     verdict. With ``offsets`` the clocks are fitted with each stream's offsets of each point's
-    rays (:func:`event_clocks`)."""
+    rays (:func:`event_clocks`), their rates held at the ratios of the streams' frame rates
+    where the event's capture knows them all (:func:`known_rates`): fitted with the offsets,
+    free rates drift where the motion is slow (docs/method.md, "Known frame rates")."""
     n = capture.num_images
     rejected, residual = outlier_arrays(result)
     placed = []
@@ -377,7 +388,9 @@ def placements(
         prob = norm.problem
         Xe = norm.to_normal(result.X[idx])
         t0 = affine_time(Xe, prob.streams, sub.frame)
-        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options, offsets=offsets)
+        rates = known_rates(sub) if offsets else None
+        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options, offsets=offsets,
+                                                  rates=rates)
         if t is None:
             logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
                         "frame periods or more); DLOE's graph is kept", e, REACH)
@@ -393,8 +406,8 @@ def placements(
         judged, rej_e, res_e = sub, rejected[idx], residual[idx]
         if checked is not None:
             csub = checked.subset(idx) if idx.size < n else checked
-            t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(csub, ticked, norm, t, Xe,
-                                                                   rej_e, offsets=offsets)
+            t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(
+                csub, ticked, norm, t, Xe, rej_e, offsets=offsets, rates=rates)
             if weights is not None:  # both models are judged on the clocks' verdict
                 judged, held = reweighted(csub, weights), None
         placed.append(Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged,
@@ -476,8 +489,10 @@ def clocks_and_offsets(
     clocks fitted with each stream's offsets of each point's rays: the first clocks took part
     of the detections' offsets as time shifts (the offsets estimated along them keep that
     part), and fitted together the two come apart where the motion's speed changes
-    (docs/method.md, "Offsets fitted with the clocks"); ``solved`` and ``offset_px`` of the
-    result hold them where its points are on clocks. Else, or without
+    (docs/method.md, "Offsets fitted with the clocks"), and at the known frame rates' ratios
+    where the capture has them (the first clocks keep their rates free: they are what the
+    offsets are estimated along); ``solved`` and ``offset_px`` of the result hold them where
+    its points are on clocks. Else, or without
     ``options.stream_offsets``, the placements are judged on the detections as they are.
     ``capture``: the solver's input; ``solved``, the capture it was solved on and ``checked``
     as :func:`clocked` takes them."""
@@ -529,7 +544,7 @@ def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
 
 def robust_on_clocks(
     capture: Capture, options: Options, norm: Normalised, t: np.ndarray, X: np.ndarray,
-    rejected: np.ndarray, *, offsets: bool = False
+    rejected: np.ndarray, *, offsets: bool = False, rates: np.ndarray | None = None
 ) -> tuple[
     np.ndarray, sp.csr_matrix, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None
 ]:
@@ -542,7 +557,7 @@ def robust_on_clocks(
     ``robust_iterations`` times). A wrong detection the graph missed is pinned to its ray with
     exact detections (``noise_px`` 0) and bent the clock fit: the first time such a one is
     rejected, the clocks are fitted again without it (kept if the rays pin them; ``offsets``
-    as :func:`event_clocks` takes it).
+    and ``rates`` as :func:`event_clocks` takes them).
 
     ``X`` (N, P, 3) in ``norm``'s frame, ``rejected`` (N, P) the robust rounds' verdict.
     Returns the clocks, the chain's W and D, the points, the rejected set, the residuals in
@@ -568,7 +583,7 @@ def robust_on_clocks(
         prob = build_problem(reweighted(capture, weights), options, norm.origin, norm.scale)
         if refit and (now & ~rejected).any():
             refit = False
-            fitted = event_clocks(t, prob, capture.frame, options, offsets=offsets)
+            fitted = event_clocks(t, prob, capture.frame, options, offsets=offsets, rates=rates)
             if fitted is not None:
                 t = fitted
                 W, D = time_chain(t)

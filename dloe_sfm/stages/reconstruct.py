@@ -176,7 +176,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--export-rate", type=_positive_rate, metavar="RATE",
                         help="samples per reference-stream frame of trajectories.trc / .c3d "
                              "(default: the fastest stream's rate)")
-    add_fps_option(parser)
+    add_fps_option(parser, solves=True)
     parser.add_argument("--progress", action="store_true",
                         help="show progress bars (default: only on a terminal)")
 

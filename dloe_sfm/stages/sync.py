@@ -60,11 +60,13 @@ def positive_rate(text: str) -> float:
     return value
 
 
-def add_fps_option(parser: argparse.ArgumentParser) -> None:
-    """``--fps`` (``parse_fps``) on ``parser``."""
+def add_fps_option(parser: argparse.ArgumentParser, *, solves: bool = False) -> None:
+    """``--fps`` (``parse_fps``) on ``parser``; ``solves``: the command solves with it."""
     parser.add_argument("--fps", nargs="+", metavar="FPS|STREAM=FPS",
                         help="frame rate of every stream, or per stream (e.g. 0=30 1=29.97): "
-                             "times in seconds and offsets in ms")
+                             "times in seconds and offsets in ms"
+                             + ("; the clocks keep the rates' ratios once the detections' "
+                                "offsets are out" if solves else ""))
 
 
 def read_report(folder: Path) -> dict:
