@@ -4,10 +4,11 @@ from .mocap import (
     MocapSequence,
     SimulationSettings,
     load_mocap,
+    pipeline_parser,
     resolve_motion,
     ring_cameras,
     simulate,
 )
 
-__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "resolve_motion", "ring_cameras",
-           "simulate"]
+__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "pipeline_parser",
+           "resolve_motion", "ring_cameras", "simulate"]

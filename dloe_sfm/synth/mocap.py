@@ -12,6 +12,7 @@ bounds (as in the paper's experiments), with Gaussian noise or a detector error 
 
 from __future__ import annotations
 
+import argparse
 import math
 import numbers
 from dataclasses import asdict, dataclass
@@ -83,6 +84,19 @@ def load_mocap(path: Path | str) -> MocapSequence:
     while start < step.size and step[start] > limit:
         start += 1
     return MocapSequence(positions=positions[start:], fps=fps, parents=parents, name=path.stem)
+
+
+def pipeline_parser(script: str, doc: str | None, name: str) -> argparse.ArgumentParser:
+    """The command line the repository's mocap pipelines (``pipelines/*/pipeline.py``, at
+    ``script``) start from: ``doc`` as help, ``--data`` (default the shared CMU clips beside the
+    repository, ``../shared/data/mocap``) and ``--out`` (default ``outputs/<name>`` in it)."""
+    repo = Path(script).resolve().parents[2]
+    parser = argparse.ArgumentParser(description=doc,
+                                     formatter_class=argparse.RawTextHelpFormatter)
+    parser.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap",
+                        help="folder of mocap .npz clips")
+    parser.add_argument("--out", type=Path, default=repo / "outputs" / name)
+    return parser
 
 
 def resolve_motion(data: Path, name: str) -> Path:

@@ -25,7 +25,6 @@ per run; about 15 minutes for all three cases with two jobs on 2 cores.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -40,7 +39,13 @@ from dloe_sfm.core.parallel import map_in_processes
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import evaluate
 from dloe_sfm.io import atomic_path
-from dloe_sfm.synth import SimulationSettings, load_mocap, resolve_motion, simulate
+from dloe_sfm.synth import (
+    SimulationSettings,
+    load_mocap,
+    pipeline_parser,
+    resolve_motion,
+    simulate,
+)
 
 DETECTOR = [(m, s) for m in ("walking_1", "jumping_1", "running_1", "soccer_1")
             for s in (0, 1, 2)] + [("basketball_1", 0)]
@@ -108,10 +113,7 @@ def run(data: Path, out: Path, cases: list[str], jobs: int) -> list[dict]:
 
 
 def main() -> None:
-    repo = Path(__file__).resolve().parents[2]
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap")
-    p.add_argument("--out", type=Path, default=repo / "outputs" / "detector_captures")
+    p = pipeline_parser(__file__, __doc__, "detector_captures")
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     p.add_argument("--jobs", type=int, default=2, help="worker processes, one thread each")
     a = p.parse_args()

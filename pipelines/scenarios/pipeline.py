@@ -21,7 +21,6 @@ Prints a table, writes ``scenarios.json`` (every run, settings, machine) and ``s
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from collections import Counter
@@ -35,7 +34,13 @@ from dloe_sfm.core.capture import Capture
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import best_permutation, swaps_undone
-from dloe_sfm.synth import MocapSequence, SimulationSettings, load_mocap, resolve_motion
+from dloe_sfm.synth import (
+    MocapSequence,
+    SimulationSettings,
+    load_mocap,
+    pipeline_parser,
+    resolve_motion,
+)
 from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
     add_outliers,
@@ -264,10 +269,7 @@ if __name__ == "__main__":
     from dloe_sfm.cli import setup_logging
 
     setup_logging()
-    repo = Path(__file__).resolve().parents[2]
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap")
-    p.add_argument("--out", type=Path, default=repo / "outputs" / "scenarios")
+    p = pipeline_parser(__file__, __doc__, "scenarios")
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     p.add_argument("--duration", type=float, default=3.0, help="seconds of each clip")
     p.add_argument("--seed", type=int, default=0)

@@ -11,7 +11,6 @@ pinned to their rays) and pseudo-triangulation.
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import sys
@@ -26,7 +25,13 @@ from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import oracle_reconstruct, point_errors
-from dloe_sfm.synth import SimulationSettings, load_mocap, resolve_motion, simulate
+from dloe_sfm.synth import (
+    SimulationSettings,
+    load_mocap,
+    pipeline_parser,
+    resolve_motion,
+    simulate,
+)
 
 MOTIONS = [
     "walking_1",
@@ -128,10 +133,7 @@ def run(
 
 
 def main() -> None:
-    repo = Path(__file__).resolve().parents[2]
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    p.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap")
-    p.add_argument("--out", type=Path, default=repo / "outputs" / "targets")
+    p = pipeline_parser(__file__, __doc__, "targets")
     p.add_argument("--motions", nargs="+", default=MOTIONS)
     p.add_argument("--settings", nargs="+", default=list(SETTINGS), choices=list(SETTINGS))
     p.add_argument("--duration", type=float, default=3.0, help="seconds of each clip")
