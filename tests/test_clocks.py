@@ -24,6 +24,7 @@ from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.evaluate import oracle_reconstruct, point_errors
+from dloe_sfm.export import export_outputs
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 from dloe_sfm.truth import Simulated
 
@@ -263,18 +264,27 @@ def test_clocks_hold_the_known_frame_rates(biased_walk):
     assert worst[False] < 0.5 and worst[False] < worst[True]
 
 
-def test_the_solve_holds_known_frame_rates_once_the_offsets_are_out(biased_walk):
+def test_the_solve_holds_known_frame_rates_once_the_offsets_are_out(biased_walk, tmp_path):
     """Default options on the biased walk: the detections' offsets are taken out and the clocks
-    fitted again with the rates at the ratios of the capture's frame rates; a capture that does
-    not know them keeps fitted rates."""
+    fitted again with the rates at the ratios of the capture's frame rates, which the sync
+    report gives as held (no uncertainty; the offsets' of their own); a capture that does not
+    know them keeps fitted rates."""
     cap, _ = biased_walk
     for fps in (cap.fps, None):
-        r = reconstruct(dataclasses.replace(cap, fps=fps), Options())
+        known = dataclasses.replace(cap, fps=fps)
+        r = reconstruct(known, Options())
         assert r.offset_px is not None and np.isfinite(r.clock).all()
         rates = np.array([np.polyfit(cap.frame[cap.stream == s], r.clock[cap.stream == s], 1)[0]
                           for s in range(4)]) * [24.0, 25.0, 29.97, 30.0]
         held = np.allclose(rates, rates[0], rtol=1e-9, atol=0.0)
         assert held == (fps is not None), (fps is None, rates)
+        report = export_outputs(tmp_path / str(held), known, r, plots=False)
+        event = report["sync"]["events"][0]
+        for name, clock in event["streams"].items():
+            other = int(name) != event["reference_stream"]
+            assert clock["rate_held"] == (held and other)
+            assert (clock["rate_sd"] == 0.0) == (held or not other)
+            assert clock["offset_sd"] > 0.0 or not other
 
 
 def test_clocks_take_a_first_guess_on_any_time_origin(sparse_walk):

@@ -14,8 +14,9 @@ averaged over the fit's knot spacings: the Gauss-Newton covariance ``s^2 (J^T J)
 the residual variance per degree of freedom: the rays' noise) plus the outer product of the
 Gauss-Newton step each spacing alone would take from the estimate (the spline model's own
 error, which dominates on clean data). It is local: a fit caught in a wrong minimum keeps a
-small one. With base ``rank`` the times are not on lines: ordinary
-least squares of the times on the frames, with its standard errors.
+small one. Where the clock fit held the rates at the known frame rates' ratios, ``J`` is in the
+offsets alone and the rates carry no uncertainty (``rate_held``). With base ``rank`` the times
+are not on lines: ordinary least squares of the times on the frames, with its standard errors.
 """
 
 from __future__ import annotations
@@ -59,12 +60,13 @@ def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
 
 
 def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
-                    free: list[int]) -> np.ndarray:
+                    free: list[int], *, held: bool = False) -> np.ndarray:
     """(2q, 2q) covariance of the offsets then rates of the ``free`` streams (module docstring);
-    ``t`` the event's times, on every stream's line."""
+    ``t`` the event's times, on every stream's line. With ``held`` (the rates were held at
+    known ratios) (q, q), of the offsets alone."""
     f = frames.astype(np.float64)
     onehot = (streams[:, None] == np.array(free)[None, :]).astype(np.float64)
-    dt = np.concatenate([onehot, onehot * f[:, None]], axis=1)
+    dt = onehot if held else np.concatenate([onehot, onehot * f[:, None]], axis=1)
     E, rhs = ray_equations(capture.rays(), capture.C, capture.weights)
     visible = capture.visible
     interval = float(np.median(np.diff(np.unique(t))))
@@ -94,8 +96,10 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
     ``mocap_export.image_times``. Returns per event its ``event``, ``base``,
     ``reference_stream`` and ``streams``: stream id -> ``offset``, ``offset_sd`` (reference
     frames at the stream's frame 0, relative to the reference's frame 0), ``rate``, ``rate_sd``
-    (reference frames per own frame), ``base`` (the event's), ``images``, ``frame_span`` (its
-    last frame less its first); streams with fewer than two frames are left out.
+    (reference frames per own frame; 0 where ``rate_held``: the clock fit held the rates at
+    the ratios of the capture's frame rates, and the offsets' uncertainty is then theirs
+    alone), ``base`` (the event's), ``images``, ``frame_span`` (its last frame less its
+    first); streams with fewer than two frames are left out.
     """
     stream_ids = capture.stream_ids
     out = []
@@ -113,10 +117,12 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         a_ref = lines[ref][0]
         free = [s for s in videos if s != ref]
         sd = {}
+        held = _held(capture, idx, lines, ref, free)
         if summary["base"] != "rank" and free:
-            cov = _ray_covariance(capture.subset(idx), t, streams, frames, free)
+            cov = _ray_covariance(capture.subset(idx), t, streams, frames, free, held=held)
             var = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            sd = {s: (float(var[k]), float(var[len(free) + k])) for k, s in enumerate(free)}
+            sd = {s: (float(var[k]), 0.0 if held else float(var[len(free) + k]))
+                  for k, s in enumerate(free)}
         for s in videos:
             a, b, a_sd, b_sd = lines[s]
             if s == ref:
@@ -124,10 +130,23 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
             elif s in sd:
                 a_sd, b_sd = sd[s]
             entry["streams"][s] = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b,
-                                   "rate_sd": b_sd, "base": summary["base"],
+                                   "rate_sd": b_sd, "rate_held": held and s != ref,
+                                   "base": summary["base"],
                                    "images": int((streams == s).sum()),
                                    "frame_span": int(np.ptp(frames[streams == s]))}
     return out
+
+
+def _held(capture: Capture, idx: np.ndarray, lines: dict, ref: int, free: list[int]) -> bool:
+    """Whether every ``free`` stream's clock (``lines``) runs at the ratio of its frame rate
+    to the reference's (``Capture.fps`` of the images ``idx``), to rounding: the clock fit
+    held them there (``pipeline.known_rates``), and their rates are known, not estimated."""
+    if capture.fps is None or not free:
+        return False
+    stream, fps = capture.stream_ids[idx], capture.fps[idx]
+    rate = {s: fps[stream == s][0] for s in (ref, *free)}
+    return all(np.isfinite(rate[s]) and abs(lines[s][1] * rate[s] / rate[ref] - 1.0) < 1e-9
+               for s in free)
 
 
 def capture_fps(capture: Capture) -> Fps:

@@ -106,7 +106,8 @@ def _valid_clock(clock: object) -> bool:
 
 def stream_table(sync: dict, fps: Fps = None) -> dict:
     """The JSON written by ``--json``: per event its ``reference_stream``, ``reference_fps`` and
-    ``streams`` (``offset_frames``, ``offset_sd_frames``, ``rate``, ``rate_sd``, ``images``,
+    ``streams`` (``offset_frames``, ``offset_sd_frames``, ``rate``, ``rate_sd``, ``rate_held``
+    (the report's: the rate held at the known frame rates' ratio), ``images``,
     with the reference's fps ``offset_s``, ``offset_sd_s``, ``implied_fps``, with the stream's
     own ``fps`` and the check against it, ``core.sync.rate_check``); ``fps`` (as
     ``parse_fps``) replaces the report's rates. The event with the most images also at the top
@@ -119,7 +120,8 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
         for name, c in event["streams"].items():
             frames, sd = c["offset_frames"], c["offset_sd_frames"]
             entry = {"offset_frames": frames, "offset_sd_frames": sd, "rate": c["rate"],
-                     "rate_sd": c["rate_sd"], "images": c.get("images")}
+                     "rate_sd": c["rate_sd"], "rate_held": bool(c.get("rate_held")),
+                     "images": c.get("images")}
             if ref_fps is not None:
                 entry.update(offset_s=frames / ref_fps, offset_sd_s=sd / ref_fps,
                              implied_fps=ref_fps / c["rate"])
@@ -149,8 +151,9 @@ def format_table(table: dict) -> str:
         for name, c in event["streams"].items():
             ms = (f"{1000 * c['offset_s']:+9.3f} ± {1000 * c['offset_sd_s']:7.3f}"
                   if "offset_s" in c else "-")
+            rate_sd = "   held  " if c["rate_held"] else f"± {c['rate_sd']:7.1e}"
             lines.append(f"  {name:>6} {ms:>20} {c['offset_frames']:+11.4f} ± "
-                         f"{c['offset_sd_frames']:8.4f} {c['rate']:8.6f} ± {c['rate_sd']:7.1e}"
+                         f"{c['offset_sd_frames']:8.4f} {c['rate']:8.6f} {rate_sd}"
                          f" {c['images'] or 0:>6}" + ("  !" if c.get("fps_consistent") is False
                                                       else ""))
     if any(c.get("fps_consistent") is False for e in table["events"]
