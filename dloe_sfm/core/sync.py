@@ -235,7 +235,7 @@ def rate_check(clock: dict, ref_fps: float | None, fps: float) -> dict:
     (the rate's distance from the rates' ratio in ``rate_sd``), ``fps_drift_frames`` (how far
     the clock drifts from that ratio over the stream's frames, in reference frames) and
     ``fps_consistent`` (:data:`RATE_CHECK_SD`, :data:`RATE_CHECK_DRIFT`); empty where
-    ``ref_fps`` is unknown or ``rate_sd`` is 0 (the reference stream)."""
+    ``ref_fps`` is unknown or ``rate_sd`` is 0 (the reference stream, a rate held)."""
     if ref_fps is None or not clock["rate_sd"] > 0:
         return {}
     miss = clock["rate"] - ref_fps / fps
