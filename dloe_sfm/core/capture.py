@@ -87,7 +87,8 @@ class Capture:
     fps : (N,) float or None
         Frame rate of the image's stream (a video's nominal rate, from its file or ``--fps``),
         one value per stream; NaN = unknown. The exports count time in seconds with it
-        (``core.sync``); the clock fit does not use it (docs/method.md, "Known frame rates").
+        (``core.sync``); the clock fit after the detections' offsets are taken out holds the
+        streams' rates at its ratios (docs/method.md, "Known frame rates").
     confidence : (N, P) or (N, M, P) float or None
         Detector scores in [0, 1]; 0 / NaN = not observed. Used as observation weights.
     image_names : (N,) str

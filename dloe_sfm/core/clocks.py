@@ -454,10 +454,11 @@ def fit_clocks(
     onehot = (inv[:, None] == free[None, :]).astype(np.float64)
     dt = np.concatenate([onehot, onehot * f[:, None]], axis=1)  # d t / d (offsets, rates)
 
-    def start_at(rates: np.ndarray) -> np.ndarray:
-        """The free streams' (offsets, rates) at ``rates`` through their first-guess times."""
-        a0 = [np.median(t0[inv == s] - rates[s] * f[inv == s]) for s in free]
-        return np.concatenate([a0, rates[free]])
+    def start_at(slopes: np.ndarray) -> np.ndarray:
+        """The free streams' (offsets, rates) at ``slopes`` (every stream's time per frame)
+        through their first-guess times."""
+        a0 = [np.median(t0[inv == s] - slopes[s] * f[inv == s]) for s in free]
+        return np.concatenate([a0, slopes[free]])
 
     base = (np.median(t0[inv == ref] - own[ref] * f[inv == ref]) + own[ref] * f) * (inv == ref)
 

@@ -492,10 +492,9 @@ def clocks_and_offsets(
     (docs/method.md, "Offsets fitted with the clocks"), and at the known frame rates' ratios
     where the capture has them (the first clocks keep their rates free: they are what the
     offsets are estimated along); ``solved`` and ``offset_px`` of the result hold them where
-    its points are on clocks. Else, or without
-    ``options.stream_offsets``, the placements are judged on the detections as they are.
-    ``capture``: the solver's input; ``solved``, the capture it was solved on and ``checked``
-    as :func:`clocked` takes them."""
+    its points are on clocks. Else, or without ``options.stream_offsets``, the placements are
+    judged on the detections as they are. ``capture``: the solver's input; ``solved``, the
+    capture it was solved on and ``checked`` as :func:`clocked` takes them."""
     if not options.stream_offsets:
         return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)
     placed = placements(solved, options, graph, auto_noise=auto_noise, checked=checked)
