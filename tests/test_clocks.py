@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from dloe_sfm.core.clocks import (
+    REACH,
     _cubic_bspline,
     _offsets,
     _rays,
@@ -14,6 +15,7 @@ from dloe_sfm.core.clocks import (
     chain_predicted,
     clocks_hold,
     fit_clocks,
+    moved_periods,
     ray_equations,
     spline_residuals,
     time_chain,
@@ -212,21 +214,25 @@ def test_clocks_recover_streams_at_their_own_rates(assets_dir):
     errors = {}
     for shared in (False, True):
         t = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible, shared_rate=shared)
-        if t is not None:
-            errors[shared] = _clock_errors_ms(t, sim.t)
-    assert errors[False].max() < 0.2
-    assert True not in errors or errors[True].max() > 2.0
+        errors[shared] = _clock_errors_ms(t, sim.t)
+    assert errors[False].max() < 0.2 and errors[True].max() > 2.0
 
 
 @pytest.fixture(scope="module")
-def biased_walk(assets_dir):
-    """Walking at 24 / 25 / 29.97 / 30 Hz, every (camera, joint) detected a few pixels off the
-    same way in every frame, as a detector does (4 px RMS per coordinate): the capture with
-    the biased detections (it knows its frame rates) and the truth."""
+def mixed_walk(assets_dir):
+    """Walking at 24 / 25 / 29.97 / 30 Hz, exact detections: the capture (it knows its frame
+    rates) and the truth."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    cap, sim = simulate(seq, SimulationSettings(duration=2.0, seed=1, num_streams=4,
-                                                rates=(24.0, 25.0, 29.97, 30.0),
-                                                random_offsets=True))
+    return simulate(seq, SimulationSettings(duration=2.0, seed=1, num_streams=4,
+                                            rates=(24.0, 25.0, 29.97, 30.0), random_offsets=True))
+
+
+@pytest.fixture(scope="module")
+def biased_walk(mixed_walk):
+    """The mixed walk with every (camera, joint) detected a few pixels off the same way in
+    every frame, as a detector does (4 px RMS per coordinate): the capture with the biased
+    detections and the truth."""
+    cap, sim = mixed_walk
     bias = np.random.default_rng(1).normal(0.0, 4.0, (4, cap.num_points, 2))
     return dataclasses.replace(cap, x=cap.x + bias[cap.stream]), sim
 
@@ -297,8 +303,23 @@ def test_clocks_take_a_first_guess_on_any_time_origin(sparse_walk):
         near = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible, shared_rate=shared)
         late = fit_clocks(t0 + 100.0, cap.stream, cap.frame, E, rhs, cap.visible,
                           shared_rate=shared)
-        assert late is not None
         np.testing.assert_allclose(late - 100.0, near, atol=1e-5)
+
+
+def test_clocks_come_back_from_a_first_guess_far_off(mixed_walk):
+    """DLOE's placement can put whole streams many frame periods off (basketball_signal_2 under
+    the detector model: 6.5 and 3.9). From streams 0.45 and 0.25 s off (10.5 periods moved, past
+    ``clocks.REACH``, where such a fit used to be refused), every clock comes back within
+    0.1 ms, and they predict held-out images better than DLOE's graph, which keeps them."""
+    cap, sim = mixed_walk
+    E, rhs = _equations(cap)
+    t0 = sim.t + np.array([0.0, 0.45, -0.25, 0.0])[cap.stream]
+    t = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible, rates=cap.fps)
+    assert moved_periods(t0, t, cap.stream, cap.frame) >= REACH
+    assert _clock_errors_ms(t, sim.t).max() < 0.1
+    options = Options(stream_clocks="off", noise_px=0.0)
+    r = reconstruct(cap, options)
+    assert clocks_predict(cap, options, r.X, r.D, t)
 
 
 @pytest.mark.slow
@@ -323,10 +344,11 @@ def test_stream_clocks_spellings():
     assert Options(stream_clocks="false").stream_clocks is Clocks.OFF
 
 
-def test_held_out_check_keeps_clocks_that_predict_at_least_as_well():
+def test_held_out_check_keeps_clocks_that_predict_about_as_well():
+    """Kept up to a median 5 % above the graph's (every detection predicted worse)."""
     graph = np.array([2.0, 3.0, 4.0, np.nan])
     assert clocks_hold(graph, graph) and clocks_hold(graph, graph * 0.9)
-    assert not clocks_hold(graph, graph * 1.05)
+    assert clocks_hold(graph, graph * 1.04) and not clocks_hold(graph, graph * 1.06)
 
 
 def test_held_out_check_gives_ties_to_the_clocks():

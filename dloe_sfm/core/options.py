@@ -291,10 +291,11 @@ class Options:
     """Every event filmed by videos (two or more streams of three or more frames) is finally
     placed on its streams' fitted affine clocks (``core.clocks``): the points by the X-step on
     the chain along the clocks, the order from them. ``auto``: fitted for every such event and
-    kept where they predict held-out images' detections at least as well as DLOE's graph
+    kept where they predict held-out images' detections about as well as DLOE's graph
     (``pipeline.clocks_predict``): few frames per stream, or slow motion under noise, leave the
     clocks unpinned and the graph does better (docs/method.md, "Held-out checks").
-    ``on`` / ``off``: always / never (``off``: the paper's method)."""
+    ``on`` / ``off``: always (but a fit that moved a stream ``clocks.REACH`` frame periods
+    from DLOE's placement faces the same check) / never (``off``: the paper's method)."""
     shared_rate: bool = False
     """With ``stream_clocks``: all streams run at one frame rate (True); else each stream's rate
     is fitted too, starting from the fit with one shared rate."""

@@ -20,6 +20,7 @@ from .clocks import (
     chain_predicted,
     clocks_hold,
     fit_clocks,
+    moved_periods,
     ray_equations,
     time_chain,
 )
@@ -56,7 +57,7 @@ def solve_single(
     solution's residuals and the capture re-solved (:func:`robust_rounds`). Unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
     streams' fitted clocks (:func:`clocked`; with ``auto`` only where they predict held-out
-    detections at least as well as the graph, :func:`clocks_predict`)."""
+    detections about as well as the graph, :func:`clocks_predict`)."""
     started = time.perf_counter()
     X_world = initialise(capture, options)
     labels = np.zeros(capture.num_images, dtype=np.int64)
@@ -259,8 +260,8 @@ def clocks_predict(
     noise_px: float | None = None, clock: np.ndarray | None = None
 ) -> bool:
     """Whether one event's clocks ``t``, with the rays of ``noise_px`` (default the graph's,
-    ``options.noise_px``; 0: hard rays), predict held-out images' detections at least as well
-    as DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
+    ``options.noise_px``; 0: hard rays), predict held-out images' detections about as well as
+    DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
     most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either
     way. ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks` has them."""
     window, sub = middle_window(capture, t)
@@ -311,11 +312,11 @@ def soft_on_clocks(
 def event_clocks(
     t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options, *, offsets: bool = False,
     rates: np.ndarray | None = None
-) -> np.ndarray | None:
+) -> np.ndarray:
     """One event's stream clocks fitted to the rays of ``prob`` from the first guess ``t0``
     (``clocks.fit_clocks``; ``options.shared_rate``; with ``offsets``, each stream's offsets
     of each point's rays fitted with them; ``rates``, every image's stream's known frame rate,
-    the rates held at their ratios); None where the rays do not pin them."""
+    the rates held at their ratios)."""
     E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
     return fit_clocks(t0, prob.streams, frame, E, rhs, prob.visible,
                       shared_rate=options.shared_rate, offsets=offsets, rates=rates)
@@ -344,7 +345,8 @@ class Placement(NamedTuple):
     ``t``, the chain's ``W`` and ``D``, points ``X`` (world), rejected observations and their
     residuals (pixels), the detection ``noise`` its rays took, and what the held-out check
     (:func:`clocks_predict`) judges it on: the capture ``judged`` and the clocks' held-out
-    residuals ``held`` when known."""
+    residuals ``held`` when known; ``moved``, how far the fit moved a stream from DLOE's placement
+    (``clocks.moved_periods``)."""
 
     idx: np.ndarray
     t: np.ndarray
@@ -356,6 +358,7 @@ class Placement(NamedTuple):
     noise: float
     judged: Capture
     held: np.ndarray | None
+    moved: float
 
 
 def placements(
@@ -363,11 +366,11 @@ def placements(
     checked: Capture | None = None, offsets: bool = False
 ) -> list[Placement]:
     """Every event of ``result`` that is filmed by videos (two or more streams of three or more
-    frames) and whose clocks the rays pin (``core.clocks``), placed on them: the points by the
-    X-step on the chain along the clocks (soft rays with ``noise_px``, as the solve), the
-    chain's W and D. ``capture`` is the one the result was solved on (:func:`robust_rounds`).
-    With ``auto_noise`` (``noise_px`` was ``auto``) and hard rays kept by the graph's check,
-    an event takes soft rays where the clocks' held-out images ask for them
+    frames), placed on its fitted clocks (``core.clocks``): the points by the X-step on the
+    chain along the clocks (soft rays with ``noise_px``, as the solve), the chain's W and D.
+    ``capture`` is the one the result was solved on (:func:`robust_rounds`). With
+    ``auto_noise`` (``noise_px`` was ``auto``) and hard rays kept by the graph's check, an
+    event takes soft rays where the clocks' held-out images ask for them
     (:func:`soft_on_clocks`). With ``checked`` (the capture before the robust weights, swaps
     undone) the observations of every event are judged again against the chain along its
     clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
@@ -388,13 +391,15 @@ def placements(
         prob = norm.problem
         Xe = norm.to_normal(result.X[idx])
         t0 = affine_time(Xe, prob.streams, sub.frame)
-        rates = known_rates(sub) if offsets else None
-        t = None if t0 is None else event_clocks(t0, prob, sub.frame, options, offsets=offsets,
-                                                  rates=rates)
-        if t is None:
-            logger.info("event %d: the rays do not pin the streams' clocks (one moved by %d "
-                        "frame periods or more); DLOE's graph is kept", e, REACH)
+        if t0 is None:
             continue
+        rates = known_rates(sub) if offsets else None
+        t = event_clocks(t0, prob, sub.frame, options, offsets=offsets, rates=rates)
+        moved = moved_periods(t0, t, prob.streams, sub.frame)
+        if moved >= REACH:
+            logger.info("event %d: the clock fit moved a stream %.1f frame periods from DLOE's "
+                        "placement; the clocks are kept only if they predict held-out detections",
+                        e, moved)
         noise, held = options.noise_px, None
         if auto_noise and noise == 0:
             noise, held = soft_on_clocks(sub, options, result.X[idx], result.D[idx],
@@ -411,20 +416,23 @@ def placements(
             if weights is not None:  # both models are judged on the clocks' verdict
                 judged, held = reweighted(csub, weights), None
         placed.append(Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged,
-                                held))
+                                held, moved))
     return placed
 
 
 def kept_placements(
     placed: list[Placement], options: Options, result: Result
 ) -> list[Placement]:
-    """The placements that ``options.stream_clocks`` keeps: all with ``on``; with ``auto``
-    those whose clocks predict held-out images at least as well as the graph of ``result``
-    (:func:`clocks_predict`)."""
-    if options.stream_clocks is not Clocks.AUTO:
-        return placed
-    return [p for p in placed if clocks_predict(p.judged, options, result.X[p.idx],
-                                                result.D[p.idx], p.t, p.noise, p.held)]
+    """The placements that ``options.stream_clocks`` keeps: with ``auto`` those whose clocks
+    predict held-out images about as well as the graph of ``result`` (:func:`clocks_predict`);
+    with ``on`` all, except that a fit that moved a stream ``clocks.REACH`` frame periods or more
+    from DLOE's placement must predict as well too: the rays may not pin its clocks, or DLOE's
+    placement was that far off (docs/method.md, "Stream clocks")."""
+    checked = options.stream_clocks is Clocks.AUTO
+    return [p for p in placed
+            if (p.moved < REACH and not checked)
+            or clocks_predict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t, p.noise,
+                              p.held)]
 
 
 def on_clocks(result: Result, placed: list[Placement], *, checked: bool) -> Result:
@@ -468,7 +476,7 @@ def clocked(
 ) -> Result:
     """``result`` with every event that is filmed by videos placed on its streams' fitted
     affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
-    (:func:`kept_placements`); an event whose clocks the rays do not pin keeps DLOE's graph.
+    (:func:`kept_placements`); the others keep DLOE's graph.
     ``outliers`` follow the events that keep their clocks. ``offsets``: as
     :func:`placements` takes it."""
     placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked,
@@ -483,8 +491,8 @@ def clocks_and_offsets(
 ) -> Result:
     """:func:`clocked` with the streams' offsets of the detections taken out (``core.bias``).
 
-    The offsets are estimated (:func:`clock_offsets`) with every event whose clocks the rays
-    pin on them, before the held-out check. Where they predict, they are taken out of the
+    The offsets are estimated (:func:`clock_offsets`) with every event on its clocks, before
+    the held-out check. Where they predict, they are taken out of the
     observations and the events placed and judged again on the detections without them, the
     clocks fitted with each stream's offsets of each point's rays: the first clocks took part
     of the detections' offsets as time shifts (the offsets estimated along them keep that
@@ -555,8 +563,9 @@ def robust_on_clocks(
     placed again by the X-step on the chain, until the rejected set holds (at most
     ``robust_iterations`` times). A wrong detection the graph missed is pinned to its ray with
     exact detections (``noise_px`` 0) and bent the clock fit: the first time such a one is
-    rejected, the clocks are fitted again without it (kept if the rays pin them; ``offsets``
-    and ``rates`` as :func:`event_clocks` takes them).
+    rejected, the clocks are fitted again without it (kept unless the fit moved a stream
+    ``clocks.REACH`` frame periods or more; ``offsets`` and ``rates`` as :func:`event_clocks`
+    takes them).
 
     ``X`` (N, P, 3) in ``norm``'s frame, ``rejected`` (N, P) the robust rounds' verdict.
     Returns the clocks, the chain's W and D, the points, the rejected set, the residuals in
@@ -583,7 +592,7 @@ def robust_on_clocks(
         if refit and (now & ~rejected).any():
             refit = False
             fitted = event_clocks(t, prob, capture.frame, options, offsets=offsets, rates=rates)
-            if fitted is not None:
+            if moved_periods(t, fitted, prob.streams, capture.frame) < REACH:
                 t = fitted
                 W, D = time_chain(t)
         rejected, used = now, weights
