@@ -475,7 +475,7 @@ def fit_clocks(
     t_init = times(starts[0])
     interval = float(np.median(np.diff(np.unique(t_init))))
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
-    period = own[ref] * float(np.median(np.diff(np.unique(f[inv == ref]))))
+    period = _reference_period(t0, inv, f)
     h_mid = hs[len(hs) // 2]
     # the offsets are the same all along: the first stages look at the middle GRID_IMAGES only
     win = np.arange(t_init.size)
@@ -588,11 +588,16 @@ def moved_periods(t0: np.ndarray, t: np.ndarray, streams: np.ndarray, frames: np
     images, up to one affine map of the time line), in frame periods of the longest stream (as
     ``t0`` counts them); the streams and frames as :func:`fit_clocks` takes them."""
     ids, inv = np.unique(streams, return_inverse=True)
-    ref = inv == np.argmax(np.bincount(inv))
-    f = frames[ref].astype(np.float64)
-    period = np.polyfit(f, t0[ref], 1)[0] * float(np.median(np.diff(np.unique(f))))
     moved = np.abs(t - np.polyval(np.polyfit(t0, t, 1), t0))
-    return max(float(np.median(moved[inv == s])) for s in range(ids.size)) / period
+    return (max(float(np.median(moved[inv == s])) for s in range(ids.size))
+            / _reference_period(t0, inv, frames.astype(np.float64)))
+
+
+def _reference_period(t0: np.ndarray, inv: np.ndarray, f: np.ndarray) -> float:
+    """The longest stream's frame period in the units of ``t0``: its first-guess rate times its
+    median frame step; ``inv`` (N,) every image's stream index, ``f`` (N,) its frame."""
+    ref = inv == np.argmax(np.bincount(inv))
+    return float(np.polyfit(f[ref], t0[ref], 1)[0] * np.median(np.diff(np.unique(f[ref]))))
 
 
 def time_chain(times: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

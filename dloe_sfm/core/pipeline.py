@@ -491,18 +491,18 @@ def clocks_and_offsets(
 ) -> Result:
     """:func:`clocked` with the streams' offsets of the detections taken out (``core.bias``).
 
-    The offsets are estimated (:func:`clock_offsets`) with every event on its clocks, before
-    the held-out check. Where they predict, they are taken out of the
-    observations and the events placed and judged again on the detections without them, the
-    clocks fitted with each stream's offsets of each point's rays: the first clocks took part
-    of the detections' offsets as time shifts (the offsets estimated along them keep that
-    part), and fitted together the two come apart where the motion's speed changes
-    (docs/method.md, "Offsets fitted with the clocks"), and at the known frame rates' ratios
-    where the capture has them (the first clocks keep their rates free: they are what the
-    offsets are estimated along); ``solved`` and ``offset_px`` of the result hold them where
-    its points are on clocks. Else, or without ``options.stream_offsets``, the placements are
-    judged on the detections as they are. ``capture``: the solver's input; ``solved``, the
-    capture it was solved on and ``checked`` as :func:`clocked` takes them."""
+    The offsets are estimated (:func:`clock_offsets`) with every event on its clocks, before the
+    held-out check. Where they predict, they are taken out of the observations and the events
+    placed and judged again on the detections without them, the clocks fitted with each stream's
+    offsets of each point's rays: the first clocks took part of the detections' offsets as time
+    shifts (the offsets estimated along them keep that part), and fitted together the two come
+    apart where the motion's speed changes (docs/method.md, "Offsets fitted with the clocks"),
+    and at the known frame rates' ratios where the capture has them (the first clocks keep their
+    rates free: they are what the offsets are estimated along); ``solved`` and ``offset_px`` of
+    the result hold them where its points are on clocks. Else, or without
+    ``options.stream_offsets``, the placements are judged on the detections as they are.
+    ``capture``: the solver's input; ``solved``, the capture it was solved on and ``checked`` as
+    :func:`clocked` takes them."""
     if not options.stream_offsets:
         return clocked(solved, options, graph, auto_noise=auto_noise, checked=checked)
     placed = placements(solved, options, graph, auto_noise=auto_noise, checked=checked)
