@@ -1,14 +1,16 @@
 """Speed work that must not change a result: the X-step's soft-ray systems assembled entry by
-entry equal the sparse products they replace bit for bit, and the runtime suite's stage meter
-times a solve without touching it."""
+entry equal the sparse products they replace bit for bit, so does the sequencing's Theil-Sen
+line scipy's, and the runtime suite's stage meter times a solve without touching it."""
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.stats import theilslopes
 
 from dloe_sfm.benchmark.jobs import StageMeter
 from dloe_sfm.benchmark.suites import STAGES
 from dloe_sfm.core import alternation, pipeline
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.sequencing import theil_sen
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.steps import _soft_system
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
@@ -46,6 +48,18 @@ def test_soft_system_is_bit_identical(rng) -> None:
         assert np.array_equal(H.data, H_ref.data)
         assert np.array_equal(rhs, rhs_ref)
         assert np.array_equal(np.signbit(rhs), np.signbit(rhs_ref))
+
+
+def test_theil_sen_line_is_scipys(rng) -> None:
+    """The line of every stream pair's frame mapping, on as few points as a short stream has
+    and as many as the sequencing takes, with ties in the slopes and the values."""
+    for size in (2, 3, 8, 57, 256):
+        for _ in range(20):
+            x = np.sort(rng.choice(4 * size, size, replace=False)).astype(float)
+            y = 1.7 * x + 4.0 * rng.standard_t(2, size)
+            y[rng.random(size) < 0.2] = np.round(y[0])
+            slope, intercept, *_ = theilslopes(y, x)
+            assert theil_sen(x, y) == (slope, intercept)
 
 
 def test_stage_meter_times_every_stage_and_changes_nothing(assets_dir) -> None:

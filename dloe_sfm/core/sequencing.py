@@ -13,7 +13,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.stats import kendalltau, theilslopes
+from scipy.stats import kendalltau
 
 from .dtw import FULL_TABLE, CostFn, align_many, in_blocks
 from .options import Distance, Embedding
@@ -177,6 +177,18 @@ def arc_distance(
     return Z
 
 
+def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(slope, intercept) of the Theil-Sen line of y on x: the median of the slopes between all
+    pairs of points with distinct x, and the median of y less the slope times the median of x
+    (``scipy.stats.theilslopes`` with its default ``separate`` method, whose argument checks and
+    confidence interval cost more than the line in the sequencing's many small fits)."""
+    dx = x[:, None] - x
+    dy = y[:, None] - y
+    up = dx > 0
+    slope = float(np.median(dy[up] / dx[up]))
+    return slope, float(np.median(y) - slope * np.median(x))
+
+
 def affine_time(
     X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None
 ) -> np.ndarray | None:
@@ -210,7 +222,7 @@ def affine_time(
                 # Theil-Sen takes all pairs of points: on evenly spaced ones of a long stream
                 few = other[np.unique(np.linspace(0, other.size - 1,
                                                   min(other.size, THEIL_SEN_POINTS)).astype(int))]
-                slope, icpt, *_ = theilslopes(at[c, few], frames[few].astype(float))
+                slope, icpt = theil_sen(frames[few].astype(float), at[c, few])
                 if slope > 0:
                     pairs.append((d, c, np.log(slope), icpt, other.size))
     # t = a_s + b_s f  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
