@@ -50,6 +50,12 @@ def _clock_errors_ms(t: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return 1000 * np.abs(A @ np.linalg.lstsq(A, truth, rcond=None)[0] - truth)
 
 
+def _stream_slopes(cap, t: np.ndarray) -> np.ndarray:
+    """Every stream's clock rate: the slope of its times ``t`` on its frames."""
+    return np.array([np.polyfit(cap.frame[cap.stream == s], t[cap.stream == s], 1)[0]
+                     for s in np.unique(cap.stream)])
+
+
 def test_time_chain_reproduces_constant_velocity():
     t = np.array([0.3, 0.0, 0.5, 0.1, 0.9])
     W, D = time_chain(t)
@@ -264,8 +270,7 @@ def test_clocks_hold_the_known_frame_rates(biased_walk):
         t = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible, offsets=True,
                        rates=rates)
         worst[rates is None] = _clock_errors_ms(t, sim.t).max()
-    slopes = np.array([np.polyfit(cap.frame[cap.stream == s], t[cap.stream == s], 1)[0]
-                       for s in range(4)])
+    slopes = _stream_slopes(cap, t)
     np.testing.assert_allclose(slopes * [24.0, 25.0, 29.97, 30.0], slopes[0] * 24.0, rtol=1e-9)
     assert worst[False] < 0.5 and worst[False] < worst[True]
 
@@ -280,8 +285,7 @@ def test_the_solve_holds_known_frame_rates_once_the_offsets_are_out(biased_walk,
         known = dataclasses.replace(cap, fps=fps)
         r = reconstruct(known, Options())
         assert r.offset_px is not None and np.isfinite(r.clock).all()
-        rates = np.array([np.polyfit(cap.frame[cap.stream == s], r.clock[cap.stream == s], 1)[0]
-                          for s in range(4)]) * [24.0, 25.0, 29.97, 30.0]
+        rates = _stream_slopes(cap, r.clock) * [24.0, 25.0, 29.97, 30.0]
         held = np.allclose(rates, rates[0], rtol=1e-9, atol=0.0)
         assert held == (fps is not None), (fps is None, rates)
         report = export_outputs(tmp_path / str(held), known, r, plots=False)
