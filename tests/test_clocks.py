@@ -5,7 +5,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from dloe_sfm.core import clocks
 from dloe_sfm.core.clocks import (
+    OUT_OF_RANGE,
     REACH,
     _cubic_bspline,
     _offsets,
@@ -407,3 +409,26 @@ def test_spline_times_before_the_first_knot_are_refused(rng):
     _SplineFit(t, obs, 0.25, -0.1)
     with pytest.raises(ValueError, match="before the first knot"):
         _SplineFit(t - 0.2, obs, 0.25, -0.1)
+
+
+def test_a_wild_trial_step_is_rejected_not_fitted(sparse_walk, monkeypatch):
+    """A Levenberg-Marquardt trial that throws the clocks far past the time line costs
+    OUT_OF_RANGE (rejected and shortened) instead of building splines with that many knots (on
+    six streams such a step asked for an array no memory holds and ended the solve): every fit
+    of a clock fit is asked for its cost a thousand spans beyond the end first, and the clocks
+    come out as without that question."""
+    cap, sim = sparse_walk
+    E, rhs = _equations(cap)
+    t0 = sim.t + np.array([0.0, 0.04, -0.03, 0.02])[cap.stream]
+    plain = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible)
+    asked = []
+    least_squares = clocks.least_squares
+
+    def probing(fun, x0, **kwargs):
+        asked.append(fun(x0 + 1000 * np.ptp(t0))[-1] ** 2)
+        return least_squares(fun, x0, **kwargs)
+
+    monkeypatch.setattr(clocks, "least_squares", probing)
+    probed = fit_clocks(t0, cap.stream, cap.frame, E, rhs, cap.visible)
+    assert len(asked) >= 3 and np.allclose(asked, OUT_OF_RANGE, rtol=1e-12, atol=0)
+    assert np.array_equal(probed, plain)

@@ -66,8 +66,13 @@ HOLD_MARGIN = 1.05
 """The clocks are kept when their median held-out residual is at most this many times the graph's
 (:func:`clocks_hold`)."""
 OUT_OF_RANGE = 1e150
-"""The fit's cost at clocks that put an image before the splines' first knot (a wild trial step
-of Levenberg-Marquardt): far above any real cost, so the step is rejected and shortened."""
+"""The fit's cost at clocks that put an image before the splines' first knot, or past
+:data:`SPAN_REACH` (a wild trial step of Levenberg-Marquardt): far above any real cost, so the
+step is rejected and shortened."""
+SPAN_REACH = 10.0
+"""A trial step that puts an image later than the first guess's last time plus this many times
+its span costs :data:`OUT_OF_RANGE`: its splines would need as many more knots (a step of
+Levenberg-Marquardt on six streams reached times whose knots no memory holds)."""
 
 
 def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
@@ -483,6 +488,7 @@ def fit_clocks(
         lo = (t_init.size - GRID_IMAGES) // 2
         win = np.sort(np.argsort(t_init, kind="stable")[lo:lo + GRID_IMAGES])
     reach = REACH * period
+    last = float(t_init.max()) + SPAN_REACH * float(np.ptp(t_init))
     grid_start = min(float(times(x)[win].min()) for x in starts) - reach - COARSE_KNOTS * h_mid
     seen = np.argsort(-visible.sum(axis=0), kind="stable")[:max(grid_points,
                                                               GRID_SLOTS // win.size)]
@@ -516,7 +522,8 @@ def fit_clocks(
         def squares(y: np.ndarray) -> float:
             z = x.copy()
             z[cols] = y
-            if times(z)[rows].min() < first:  # a trial step beyond the knots: rejected as worse
+            t = times(z)[rows]
+            if t.min() < first or t.max() > last:  # a wild trial step: rejected as worse
                 return OUT_OF_RANGE
             return sum(float(f.res @ f.res) / n**2 for f, n in zip(at(y), norms, strict=True))
 
