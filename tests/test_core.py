@@ -10,8 +10,9 @@ from dloe_sfm.core import steps
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.init import pseudo_triangulate
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.problem import build_problem
+from dloe_sfm.core.problem import build_problem, initialise
 from dloe_sfm.core.sequencing import (
+    affine_time,
     arc_distance,
     euclidean_distance,
     kendall_tau,
@@ -256,6 +257,25 @@ def test_embeddings_order_a_known_chain(rng, embedding):
     assert kendall_tau(np.arange(5), np.arange(5)) == pytest.approx(1.0)
     assert kendall_tau(np.arange(5)[::-1], np.arange(5)) == pytest.approx(1.0)
     assert kendall_tau(np.array([0, 2, 1, 3]), np.arange(4)) == pytest.approx(4 / 6)
+
+
+def test_affine_time_holds_known_frame_rates(assets_dir):
+    """Six streams at 24-60 Hz of a slow motion under the detector model: DTW placements of the
+    pseudo-triangulated shapes stall and jump, and free lines through them put a stream 7 frames
+    off. With the known frame rates every stream runs exactly at their ratio, and each stream's
+    clock is within 1.5 of its own frames of the truth."""
+    seq = load_mocap(assets_dir / "mocap" / "basketball_signal_1.npz")
+    cap, sim = simulate(seq, SimulationSettings(duration=2.0, seed=0, num_streams=6,
+                                                rates=(24, 25, 29.97, 30, 50, 60),
+                                                random_offsets=True, detector="openpose"))
+    t = affine_time(initialise(cap, Options()), cap.stream, cap.frame, rates=cap.fps)
+    # time per own frame times own fps: the reference's fps for every stream
+    ref_fps = [np.polyfit(cap.frame[cap.stream == s], t[cap.stream == s], 1)[0]
+               * cap.fps[cap.stream == s][0] for s in np.unique(cap.stream)]
+    assert np.ptp(ref_fps) < 1e-9 * np.mean(ref_fps)
+    a, b = np.polyfit(t, sim.t, 1)
+    off = (a * t + b - sim.t) * cap.fps  # own frames
+    assert max(abs(np.median(off[cap.stream == s])) for s in np.unique(cap.stream)) < 1.5
 
 
 def test_arc_distance_separates_repetitions():

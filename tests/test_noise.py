@@ -97,7 +97,7 @@ def test_auto_on_exact_detections_is_the_hard_ray_solve(assets_dir):
 def test_detector_errors_are_solved_with_soft_rays_and_beat_hard_ones(assets_dir):
     """Heavy-tailed, per-camera biased detections (the OpenPose model): their residuals differ
     from point to point, yet soft rays predict held-out detections better, and the result is
-    closer to the truth than the hard-ray solve."""
+    closer to the truth than the hard-ray solve, by more than 10 %."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     cap, truth = simulate(seq, SimulationSettings(duration=1.5, detector="openpose"))
     options = Options(robust_loss="none", fix_swaps=False)
@@ -108,7 +108,7 @@ def test_detector_errors_are_solved_with_soft_rays_and_beat_hard_ones(assets_dir
     def error(X):
         return point_errors(X, truth.X, cap.visible)["error_mm"]
 
-    assert error(auto.X) < 0.8 * error(hard.X), (error(auto.X), error(hard.X))
+    assert error(auto.X) < 0.9 * error(hard.X), (error(auto.X), error(hard.X))
 
 
 @pytest.mark.parametrize("noise", [0.0, 3.0])

@@ -73,8 +73,10 @@ def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solve
 
 
 def test_the_captures_frame_rates_give_seconds_without_fps(walking, solved, tmp_path):
-    """A capture that knows its frame rates (``fps``, as ``simulate`` writes) is solved as one
-    that does not, and its report counts seconds without ``--fps``, with the same offsets."""
+    """A capture that knows its frame rates (``fps``, as ``simulate`` writes) has its report
+    count seconds without ``--fps``, with the offsets of the same capture solved without them
+    and exported with ``--fps``: within 0.01 ms, the solve holding the known rates in its
+    placement (docs/method.md, "Known rates in the placement")."""
     capture, _ = walking
     report = export_outputs(tmp_path / "out", capture, reconstruct(capture, Options()),
                             plots=False)
@@ -82,7 +84,7 @@ def test_the_captures_frame_rates_give_seconds_without_fps(walking, solved, tmp_
     told = solved[3]["sync"]["events"][0]["streams"]
     for name, clock in report["sync"]["events"][0]["streams"].items():
         assert clock["fps"] == RATES[int(name)]
-        assert clock["offset_ms"] == pytest.approx(told[name]["offset_ms"], abs=1e-6)
+        assert clock["offset_ms"] == pytest.approx(told[name]["offset_ms"], abs=0.01)
 
 
 def test_frame_rates_go_into_the_capture_and_round_trip(walking, tmp_path):

@@ -72,7 +72,7 @@ def sequence(
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
     placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None
     if options.embedding is Embedding.AFFINE:
-        t = affine_time(X, prob.streams, frames, placement)
+        t = affine_time(X, prob.streams, frames, placement, rates=prob.rates)
         if t is not None:
             sample = np.unique(np.linspace(0, t.size - 1, min(t.size, MDS_SAMPLE)).astype(int))
             Z = distance_matrix(X, prob.streams, frames, options.distance, placement, sample)

@@ -28,7 +28,15 @@ from .events import segment_events
 from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
-from .problem import Normalised, assemble, build_problem, initialise, normalise, parts
+from .problem import (
+    Normalised,
+    assemble,
+    build_problem,
+    initialise,
+    known_rates,
+    normalise,
+    parts,
+)
 from .result import Result, merged_history
 from .robust import (
     apply_swaps,
@@ -322,13 +330,6 @@ def event_clocks(
                       shared_rate=options.shared_rate, offsets=offsets, rates=rates)
 
 
-def known_rates(capture: Capture) -> np.ndarray | None:
-    """(N,) every image's stream's frame rate where ``capture`` knows them all
-    (``Capture.fps``), else None."""
-    fps = capture.fps
-    return fps if fps is not None and np.isfinite(fps).all() else None
-
-
 def outlier_arrays(result: Result) -> tuple[np.ndarray, np.ndarray]:
     """(N, P) the observations ``result`` left out (``outliers``) and their residuals in
     pixels (``outlier_residual_px``; NaN elsewhere)."""
@@ -390,7 +391,7 @@ def placements(
         norm = normalise(sub, options, result.X[idx])
         prob = norm.problem
         Xe = norm.to_normal(result.X[idx])
-        t0 = affine_time(Xe, prob.streams, sub.frame)
+        t0 = affine_time(Xe, prob.streams, sub.frame, rates=prob.rates)
         if t0 is None:
             continue
         rates = known_rates(sub) if offsets else None

@@ -18,6 +18,13 @@ SparseParts = list[tuple[np.ndarray, np.ndarray, np.ndarray]]
 """(data, rows, cols) triplets of the pieces of one sparse matrix."""
 
 
+def known_rates(capture: Capture) -> np.ndarray | None:
+    """(N,) every image's stream's frame rate where ``capture`` knows them all
+    (``Capture.fps``), else None."""
+    fps = capture.fps
+    return fps if fps is not None and np.isfinite(fps).all() else None
+
+
 def initialise(capture: Capture, options: Options) -> np.ndarray:
     """Pseudo-triangulated (N, P, 3) shapes in world units (unobserved points interpolated)."""
     rays = capture.rays()
@@ -62,6 +69,7 @@ def build_problem(capture: Capture, options: Options, origin: np.ndarray, scale:
         view_dirs=view,
         chain=chain,
         prior=np.where(has_chain, options.prior_weight, 0.0),
+        rates=known_rates(capture),
     )
 
 

@@ -190,7 +190,8 @@ def theil_sen(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
 
 
 def affine_time(
-    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None
+    X: np.ndarray, streams: np.ndarray, frames: np.ndarray, placement: Placement | None = None,
+    rates: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Time of every image assuming each stream runs at a constant frame rate (videos).
 
@@ -199,9 +200,13 @@ def affine_time(
     there; a robust (Theil-Sen) line through those pairs (at most ``THEIL_SEN_POINTS`` of
     them, evenly spaced) gives the relative offset and rate of
     the two streams, and a least-squares fit over all pairs gives every (a_s, b_s), with the
-    longest stream as the reference clock. Lone photos take the median time at which the streams'
-    polylines place them. Returns (N,) times in the reference stream's frames, or None when no
-    two streams have two or more images.
+    longest stream as the reference clock. With ``rates`` (N,), every image's stream's known
+    frame rate, the rates are their ratios and each pair gives its offset alone, the median of
+    the placed frame numbers less the rate ratio times the frames: the DTW placements of noisy
+    shapes stall and jump, and a line through them can miss the rate by tens of percent
+    (docs/method.md, "Known rates in the placement"). Lone photos take the median time at which
+    the streams' polylines place them. Returns (N,) times in the reference stream's frames, or
+    None when no two streams have two or more images.
     """
     n = X.shape[0]
     pl = placement or place_on_streams(X, streams, frames)
@@ -215,25 +220,34 @@ def affine_time(
         arc, keep = np.unique(pl.pos[c, idx], return_index=True)
         fr = frames[idx].astype(float)[keep]
         at[c] = np.interp(pl.pos[c], arc, fr) if arc.size > 1 else fr[0]
+    ref = int(np.argmax([m.size for m in lines]))
+    known = None if rates is None else np.array([rates[idx[0]] for idx in lines])
     pairs = []  # (d, c, log slope, intercept, size): f_c = icpt + slope f_d
     for c in range(k):
         for d, other in enumerate(lines):
-            if d != c:
+            if d == c:
+                continue
+            if known is not None:
+                slope = known[c] / known[d]
+                icpt = float(np.median(at[c, other] - slope * frames[other]))
+            else:
                 # Theil-Sen takes all pairs of points: on evenly spaced ones of a long stream
                 few = other[np.unique(np.linspace(0, other.size - 1,
                                                   min(other.size, THEIL_SEN_POINTS)).astype(int))]
                 slope, icpt = theil_sen(frames[few].astype(float), at[c, few])
-                if slope > 0:
-                    pairs.append((d, c, np.log(slope), icpt, other.size))
+            if slope > 0:
+                pairs.append((d, c, np.log(slope), icpt, other.size))
     # t = a_s + b_s f  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
-    ref = int(np.argmax([m.size for m in lines]))
     A = np.zeros((len(pairs) + 1, k))
     y = np.zeros(len(pairs) + 1)
     wts = np.ones(len(pairs) + 1)
     for r, (d, c, lslope, _, size) in enumerate(pairs):
         A[r, d], A[r, c], y[r], wts[r] = 1.0, -1.0, lslope, np.sqrt(size)
     A[-1, ref], wts[-1] = 1.0, 1e3
-    b = np.exp(np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0])
+    if known is not None:
+        b = known[ref] / known
+    else:
+        b = np.exp(np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0])
     A[:] = 0.0
     for r, (d, c, _, icpt, _) in enumerate(pairs):
         A[r, d], A[r, c], y[r] = 1.0, -1.0, b[c] * icpt

@@ -30,6 +30,7 @@ class Problem:
     view_dirs: np.ndarray  # (N, 3) mean viewing direction of each image
     chain: sp.csr_matrix  # (N, N) intra-stream chain prior (rows sum to 1 or 0)
     prior: np.ndarray  # (N,) weight a_i of the chain prior in row i (0 for lone photos)
+    rates: np.ndarray | None = None  # (N,) every image's stream's known frame rate, or None
 
     @property
     def visible(self) -> np.ndarray:

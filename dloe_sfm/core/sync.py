@@ -140,7 +140,7 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
 def _held(capture: Capture, idx: np.ndarray, lines: dict, ref: int, free: list[int]) -> bool:
     """Whether every ``free`` stream's clock (``lines``) runs at the ratio of its frame rate
     to the reference's (``Capture.fps`` of the images ``idx``), to rounding: the clock fit
-    held them there (``pipeline.known_rates``), and their rates are known, not estimated."""
+    held them there (``problem.known_rates``), and their rates are known, not estimated."""
     if capture.fps is None or not free:
         return False
     stream, fps = capture.stream_ids[idx], capture.fps[idx]

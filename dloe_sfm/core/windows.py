@@ -28,7 +28,7 @@ from .events import segment_events
 from .options import Options
 from .parallel import map_in_processes, worker_count
 from .pipeline import solve_single
-from .problem import assemble, initialise, parts
+from .problem import assemble, initialise, known_rates, parts
 from .result import Result, merged_history
 from .robust import apply_swaps
 from .sequencing import affine_time
@@ -69,7 +69,8 @@ def plan_windows(times: np.ndarray, size: int, overlap: int) -> tuple[list[np.nd
 def first_guess_times(capture: Capture, options: Options) -> np.ndarray:
     """Every image's time on its stream's first-guess affine clock (reference-stream frames),
     from the pseudo-triangulated shapes. InputError without two video streams (no clocks)."""
-    t = affine_time(initialise(capture, options), capture.stream_ids, capture.frame)
+    t = affine_time(initialise(capture, options), capture.stream_ids, capture.frame,
+                    rates=known_rates(capture))
     if t is None:
         raise InputError("a windowed solve needs two or more video streams (streams of two or "
                          "more frames) to order the images first")
@@ -134,7 +135,7 @@ def stitch(
         if r.swaps.size:
             kept = mine[r.swaps[:, 0]]
             swaps.append(np.c_[idx[r.swaps[kept, 0]], r.swaps[kept, 1:]])
-    t = affine_time(X, capture.stream_ids, capture.frame)
+    t = affine_time(X, capture.stream_ids, capture.frame, rates=known_rates(capture))
     t = t0 if t is None else t
     clock = np.full(n, np.nan)
     for w, (idx, r) in enumerate(zip(windows, results, strict=True)):
