@@ -28,15 +28,7 @@ from .events import segment_events
 from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
-from .problem import (
-    Normalised,
-    assemble,
-    build_problem,
-    initialise,
-    known_rates,
-    normalise,
-    parts,
-)
+from .problem import Normalised, assemble, build_problem, initialise, normalise, parts
 from .result import Result, merged_history
 from .robust import (
     apply_swaps,
@@ -377,7 +369,7 @@ def placements(
     clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
     verdict. With ``offsets`` the clocks are fitted with each stream's offsets of each point's
     rays (:func:`event_clocks`), their rates held at the ratios of the streams' frame rates
-    where the event's capture knows them all (:func:`known_rates`): fitted with the offsets,
+    where the event's capture knows them all (``problem.known_rates``): fitted with the offsets,
     free rates drift where the motion is slow (docs/method.md, "Known frame rates")."""
     n = capture.num_images
     rejected, residual = outlier_arrays(result)
@@ -394,7 +386,7 @@ def placements(
         t0 = affine_time(Xe, prob.streams, sub.frame, rates=prob.rates)
         if t0 is None:
             continue
-        rates = known_rates(sub) if offsets else None
+        rates = prob.rates if offsets else None
         t = event_clocks(t0, prob, sub.frame, options, offsets=offsets, rates=rates)
         moved = moved_periods(t0, t, prob.streams, sub.frame)
         if moved >= REACH:
