@@ -376,7 +376,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                                column_labels(result, layout_names), export_rate=export_rate)
     check_fps(fps, capture.stream_ids)
     fps = capture_fps(capture) if fps is None else fps
-    sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"]), fps)
+    sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"],
+                                     result.clock_dropped), fps)
     for event in sync["events"]:
         for s, clock in event["streams"].items():
             if clock.get("fps_consistent") is False:
@@ -386,6 +387,14 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                     "wrong rates, its offset and times are not to be trusted", event["event"], s,
                     clock["implied_fps"], clock["fps"], 100 * clock["fps_deviation"],
                     clock["fps_deviation_sd"])
+    for event in sync["events"]:
+        if event["clocks_dropped"]:
+            logger.warning(
+                "event %d: the streams' fitted clocks predicted held-out detections worse than "
+                "DLOE's graph; the offsets are the graph's, uncertain by the two's disagreement "
+                "(up to %.2f frames, report.json sync: clock_disagreement_frames)", event["event"],
+                max((abs(c["clock_disagreement_frames"]) for c in event["streams"].values()
+                     if "clock_disagreement_frames" in c), default=0.0))
     times = times_in_unit(times, result.events, sync, fps)
 
     with open(folder / "sequence.csv", "w", newline="") as f:

@@ -16,9 +16,11 @@ from dloe_sfm.core.assess import (
     BLOCK,
     assess,
     depth_variances,
+    gap_ratio,
     inverse_diagonals,
     neighbour_deviation,
 )
+from dloe_sfm.core.clocks import time_chain
 from dloe_sfm.core.options import Options, RobustLoss
 from dloe_sfm.core.steps import smoothness_matrix
 from dloe_sfm.io import CHECK_KEYS, load_result, save_result
@@ -152,3 +154,15 @@ def test_neighbour_deviation_of_some_rows_equals_theirs_among_all(rng):
     assert np.isnan(every).any() and np.isfinite(every).any()
     assert np.array_equal(neighbour_deviation(X, W, observed, excluded, rows), every[rows],
                           equal_nan=True)
+
+
+def test_an_end_far_from_its_neighbour_in_time_reaches_that_far():
+    """The time line's first image, 5 intervals before the next (as a camera that starts alone):
+    its chain row copies that neighbour, so its deviation is judged in steps 5 times as long
+    (the bundled field workspace's first frame, 60 ms before any other camera's, was flagged
+    inconsistent at 3.5 steps with nothing wrong: 13.9 mm against a 10.7 mm median)."""
+    t = np.array([0.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0])
+    W, _ = time_chain(t[::-1])
+    ratio = gap_ratio(t[::-1], W)
+    np.testing.assert_allclose(ratio[::-1], [5.0, 5 / 3, 1.0, 1.0, 1.0, 1.0, 1.0])
+    assert np.array_equal(gap_ratio(t, sp.csr_matrix((7, 7))), np.ones(7))

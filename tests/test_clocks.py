@@ -312,6 +312,41 @@ def test_clocks_take_a_first_guess_on_any_time_origin(sparse_walk):
         np.testing.assert_allclose(late - 100.0, near, atol=1e-5)
 
 
+def test_clocks_knots_do_not_shrink_where_streams_fall_in_phase(mixed_walk, monkeypatch):
+    """The knot spacings count sampling intervals: the median gap between the merged
+    first-guess times, with the other streams at the median rate (the first start) or at their
+    own, whichever is larger. Streams at 24 / 25 / 30 Hz (47 / 49 / 39 frames: the 25 Hz one
+    the reference, at the median rate) whose middle frames fall together: at the median rate
+    their frames nearly coincide all along and the gaps collapse (0.2 ms); at their own rates
+    they are 13 ms, and the knots follow those. A detector-model capture whose streams fell
+    nearly in phase at the median rate had its knots 2.7 x too close, and its clock fits took
+    2.6 x as long."""
+    cap, sim = mixed_walk
+    E, rhs = _equations(cap)
+    keep = np.flatnonzero(((cap.stream == 0) & (cap.frame < 47))
+                          | ((cap.stream == 1) & (cap.frame < 49))
+                          | ((cap.stream == 3) & (cap.frame < 39)))
+    streams, frames = cap.stream[keep], cap.frame[keep]
+    slopes, middles = _stream_slopes(cap, sim.t), {0: 23, 1: 24, 3: 19}
+    t0 = np.array([slopes[s] * (f - middles[s]) for s, f in zip(streams, frames, strict=True)])
+    t0 += 1e-4 * streams
+    spacings = set()
+
+    class Recorded(_SplineFit):
+        def __init__(self, t, rays, spacing, start, *args, **kwargs):
+            if t.size == keep.size:
+                spacings.add(spacing)
+            super().__init__(t, rays, spacing, start, *args, **kwargs)
+
+    monkeypatch.setattr(clocks, "_SplineFit", Recorded)
+    fit_clocks(t0, streams, frames, E[keep], rhs[keep], cap.visible[keep])
+    interval = clocks.sampling_interval(t0)
+    assert interval > 0.01
+    expected = [h * interval for h in clocks.SPACINGS]
+    expected.append(clocks.COARSE_KNOTS * expected[len(expected) // 2])
+    np.testing.assert_allclose(sorted(spacings), sorted(expected), rtol=1e-9)
+
+
 def test_clocks_come_back_from_a_first_guess_far_off(mixed_walk):
     """DLOE's placement can put whole streams many frame periods off (basketball_signal_2 under
     the detector model: 6.5 and 3.9). From streams 0.45 and 0.25 s off (10.5 periods moved, past

@@ -209,6 +209,20 @@ def typical_step(X: np.ndarray, W: sp.csr_matrix) -> float:
     return typical if typical > 0 else 1.0
 
 
+def gap_ratio(f: np.ndarray, W: sp.csr_matrix) -> np.ndarray:
+    """(N,) every image's W-weighted time gap to its neighbours along ``f``, over the median of
+    those gaps (1 without neighbours): how much farther than usual its row has to reach."""
+    coo = W.tocoo()
+    n = f.size
+    sums = np.bincount(coo.row, coo.data, minlength=n).astype(np.float64)
+    gap = np.bincount(coo.row, coo.data * np.abs(f[coo.row] - f[coo.col]),
+                      minlength=n).astype(np.float64)
+    has = sums > 0
+    gap[has] /= sums[has]
+    typical = float(np.median(gap[has])) if has.any() else 0.0
+    return np.where(has & (typical > 0), gap / max(typical, 1e-300), 1.0)
+
+
 def assess(capture: Capture, result: Result, *, lambda1: float) -> Result:
     """``result`` with ``image_status``, ``status_reason``, ``residual_px``,
     ``neighbour_deviation``, ``depth_sd`` and ``supported`` filled in.
@@ -235,10 +249,11 @@ def assess(capture: Capture, result: Result, *, lambda1: float) -> Result:
     bad_residual = outlying(residual, robust_stats(residual, pred_scale), residual)
 
     # the time line's ends can only extrapolate (by up to about a step): measured in steps twice
-    # as long; the spread at least half a step (docs/method.md, "Per-image status and
-    # reconstructability")
-    step = typical_step(X, result.W) * np.where(temporal_ends(result.embedding, cap.stream_ids),
-                                                2.0, 1.0)
+    # as long, or as many times as an end's row reaches farther in time than rows usually do; the
+    # spread at least half a step (docs/method.md, "Per-image status and reconstructability")
+    step = typical_step(X, result.W) * np.where(
+        temporal_ends(result.embedding, cap.stream_ids),
+        np.maximum(2.0, gap_ratio(result.embedding, result.W)), 1.0)
     W = sp.csr_matrix(result.W)
     by_column = sp.csc_matrix(W)
     bad_neighbour = np.zeros(n, dtype=bool)

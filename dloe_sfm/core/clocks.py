@@ -37,7 +37,7 @@ from scipy.optimize import least_squares
 from .robust import predicted
 
 SPACINGS = (2.0, 3.0, 4.0, 5.0)
-"""Knot spacings in median sampling intervals of all streams merged."""
+"""Knot spacings in median sampling intervals of all streams merged (:func:`fit_clocks`)."""
 REACH = 8
 """A stream that the fit moves this many frame periods or more from its first guess (median over
 its images, against the others, :func:`moved_periods`) may not be pinned by the rays, or the
@@ -73,6 +73,12 @@ SPAN_REACH = 10.0
 """A trial step that puts an image later than the first guess's last time plus this many times
 its span costs :data:`OUT_OF_RANGE`: its splines would need as many more knots (a step of
 Levenberg-Marquardt on six streams reached times whose knots no memory holds)."""
+
+
+def sampling_interval(t: np.ndarray) -> float:
+    """The median gap between the distinct times ``t`` of all streams merged: the unit of the
+    knot spacings."""
+    return float(np.median(np.diff(np.unique(t))))
 
 
 def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
@@ -444,6 +450,9 @@ def fit_clocks(
     trajectories (:class:`_Offsets`): a detector's offsets otherwise read as time shifts where
     the motion is steady. ``rates`` (N,), every image's stream's known frame rate: the rates are
     held at their ratios (one start, through the first-guess times; the offsets alone fitted).
+    The knots are ``spacings`` sampling intervals apart (:func:`sampling_interval`), the larger
+    of the starts': at the median rate, streams filmed at other rates can fall nearly in phase
+    all along, and the gaps between their times collapse (docs/method.md, "Stream clocks").
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
@@ -478,7 +487,7 @@ def fit_clocks(
 
     starts = [start_at(own)] if held else [start_at(np.full(k, np.median(own))), start_at(own)]
     t_init = times(starts[0])
-    interval = float(np.median(np.diff(np.unique(t_init))))
+    interval = max(sampling_interval(times(x)) for x in starts)
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
     period = _reference_period(t0, inv, f)
     h_mid = hs[len(hs) // 2]

@@ -428,14 +428,31 @@ def kept_placements(
                               p.held)]
 
 
-def on_clocks(result: Result, placed: list[Placement], *, checked: bool) -> Result:
+def judged(result: Result, placed: list[Placement], options: Options, *, checked: bool
+           ) -> Result:
+    """``result`` with the events of ``placed`` that ``options.stream_clocks`` keeps on their
+    clocks (:func:`kept_placements`, :func:`on_clocks`) and the clocks of the others in
+    ``clock_dropped``."""
+    kept = kept_placements(placed, options, result)
+    dropped = [p for p in placed if not any(p is q for q in kept)]
+    return on_clocks(result, kept, checked=checked, dropped=dropped)
+
+
+def on_clocks(result: Result, placed: list[Placement], *, checked: bool,
+              dropped: list[Placement] | None = None) -> Result:
     """``result`` with the events of ``placed`` on their clocks: points, W and D rows the
     chain's, their block of the order and their embedding (span kept) from the clocks,
     ``clock`` the times, ``noise_px`` the largest their rays took; with ``checked`` (the
-    observations were judged again on the clocks) ``outliers`` theirs on those events."""
+    observations were judged again on the clocks) ``outliers`` theirs on those events. The
+    times of the events of ``dropped`` (their clocks not kept) go to ``clock_dropped``."""
+    n = result.X.shape[0]
+    if dropped:
+        times = np.full(n, np.nan)
+        for p in dropped:
+            times[p.idx] = p.t
+        result = replace(result, clock_dropped=times)
     if not placed:
         return result
-    n = result.X.shape[0]
     X, D = result.X.copy(), result.D.copy()
     order, embedding, rank = result.order.copy(), result.embedding.copy(), result.rank
     clock = np.full(n, np.nan)
@@ -469,13 +486,12 @@ def clocked(
 ) -> Result:
     """``result`` with every event that is filmed by videos placed on its streams' fitted
     affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
-    (:func:`kept_placements`); the others keep DLOE's graph.
+    (:func:`judged`); the others keep DLOE's graph, their clocks in ``clock_dropped``.
     ``outliers`` follow the events that keep their clocks. ``offsets``: as
     :func:`placements` takes it."""
     placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked,
                         offsets=offsets)
-    return on_clocks(result, kept_placements(placed, options, result),
-                     checked=checked is not None)
+    return judged(result, placed, options, checked=checked is not None)
 
 
 def clocks_and_offsets(
@@ -503,8 +519,7 @@ def clocks_and_offsets(
     if placed:
         offsets = clock_offsets(capture, on_clocks(graph, placed, checked=checked is not None))
     if offsets is None:
-        return on_clocks(graph, kept_placements(placed, options, graph),
-                         checked=checked is not None)
+        return judged(graph, placed, options, checked=checked is not None)
     result = clocked(without_offsets(solved, offsets), options, graph, auto_noise=auto_noise,
                      checked=None if checked is None else without_offsets(checked, offsets),
                      offsets=True)

@@ -50,6 +50,11 @@ class Result:
         With stream clocks (``Options.stream_clocks``): every image's time on its stream's
         fitted clock, in frames of its event's longest stream (NaN in an event without them);
         None when no event has them.
+    clock_dropped : (N,) float or None
+        Every image's time on the clocks fitted for its event but not kept (the held-out check
+        preferred DLOE's graph), as ``clock`` counts it (NaN elsewhere); None when no event's
+        clocks were dropped. The sync report takes the two models' disagreement into its
+        uncertainty (``core.sync.stream_clocks``).
     subject_id, point_id : (P',) int or None
         With several subjects: column k of X is point ``point_id[k]`` of subject
         ``subject_id[k]`` (P' = subjects x P). None for one subject.
@@ -103,6 +108,7 @@ class Result:
     scale: float = 1.0
     noise_px: float = 0.0
     clock: np.ndarray | None = None
+    clock_dropped: np.ndarray | None = None
     subject_id: np.ndarray | None = None
     point_id: np.ndarray | None = None
     assignment: np.ndarray | None = None

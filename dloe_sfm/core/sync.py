@@ -27,7 +27,7 @@ import numpy as np
 
 from ..errors import InputError
 from .capture import Capture
-from .clocks import SPACINGS, ray_equations, spline_residuals
+from .clocks import SPACINGS, ray_equations, sampling_interval, spline_residuals
 
 Fps = float | dict[int, float] | None
 """Frame rates: one for every stream, per stream id, or unknown."""
@@ -69,7 +69,7 @@ def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames
     dt = onehot if held else np.concatenate([onehot, onehot * f[:, None]], axis=1)
     E, rhs = ray_equations(capture.rays(), capture.C, capture.weights)
     visible = capture.visible
-    interval = float(np.median(np.diff(np.unique(t))))
+    interval = sampling_interval(t)
     img, pt = np.nonzero(visible)
     cov = 0.0
     for h in SPACINGS:
@@ -88,18 +88,24 @@ def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames
 
 
 def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
-                  events: list[dict]) -> list[dict]:
+                  events: list[dict], dropped: np.ndarray | None = None) -> list[dict]:
     """Every stream's clock with uncertainty, per event (module docstring).
 
     ``capture`` as from ``columns.solved_capture``; ``labels`` (N,) the images' events;
     ``time`` (N,) and ``events`` (per event: ``event``, ``base``, ``reference_stream``) from
     ``mocap_export.image_times``. Returns per event its ``event``, ``base``,
-    ``reference_stream`` and ``streams``: stream id -> ``offset``, ``offset_sd`` (reference
-    frames at the stream's frame 0, relative to the reference's frame 0), ``rate``, ``rate_sd``
-    (reference frames per own frame; 0 where ``rate_held``: the clock fit held the rates at
-    the ratios of the capture's frame rates, and the offsets' uncertainty is then theirs
-    alone), ``base`` (the event's), ``images``, ``frame_span`` (its last frame less its
-    first); streams with fewer than two frames are left out.
+    ``reference_stream``, ``clocks_dropped`` and ``streams``: stream id -> ``offset``,
+    ``offset_sd`` (reference frames at the stream's frame 0, relative to the reference's frame
+    0), ``rate``, ``rate_sd`` (reference frames per own frame; 0 where ``rate_held``: the clock
+    fit held the rates at the ratios of the capture's frame rates, and the offsets' uncertainty
+    is then theirs alone), ``base`` (the event's), ``images``, ``frame_span`` (its last frame
+    less its first); streams with fewer than two frames are left out.
+
+    ``dropped`` (N,): the times of the clocks fitted but not kept (``Result.clock_dropped``).
+    In an event whose times are DLOE's graph's (base ``affine embedding``) and whose clocks
+    were dropped (``clocks_dropped``), the held-out check could not confirm either model's
+    timing: every stream also gets ``clock_disagreement`` (the dropped clocks' offset less the
+    graph's, reference frames), which joins ``offset_sd`` in quadrature.
     """
     stream_ids = capture.stream_ids
     out = []
@@ -108,8 +114,12 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         streams, frames, t = stream_ids[idx], capture.frame[idx], time[idx]
         ref = summary["reference_stream"]
         videos = [int(s) for s in np.unique(streams) if np.unique(frames[streams == s]).size >= 2]
+        other = None
+        if (dropped is not None and summary["base"] == "affine embedding"
+                and np.isfinite(dropped[idx]).all()):
+            other = _lines(dropped[idx], streams, frames, videos)
         entry = {"event": int(summary["event"]), "base": summary["base"],
-                 "reference_stream": ref, "streams": {}}
+                 "reference_stream": ref, "clocks_dropped": other is not None, "streams": {}}
         out.append(entry)
         if ref is None:
             continue
@@ -129,11 +139,17 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
                 a_sd = b_sd = 0.0
             elif s in sd:
                 a_sd, b_sd = sd[s]
-            entry["streams"][s] = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b,
-                                   "rate_sd": b_sd, "rate_held": held and s != ref,
-                                   "base": summary["base"],
-                                   "images": int((streams == s).sum()),
-                                   "frame_span": int(np.ptp(frames[streams == s]))}
+            clock = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b, "rate_sd": b_sd,
+                     "rate_held": held and s != ref, "base": summary["base"],
+                     "images": int((streams == s).sum()),
+                     "frame_span": int(np.ptp(frames[streams == s]))}
+            if other is not None:
+                # the dropped clocks in the reference's frames, as the exported times count
+                a_o, b_o = other[ref][:2]
+                apart = (other[s][0] - a_o) / b_o - (a - a_ref)
+                clock["clock_disagreement"] = apart
+                clock["offset_sd"] = float(np.hypot(clock["offset_sd"], apart))
+            entry["streams"][s] = clock
     return out
 
 
@@ -212,6 +228,9 @@ def sync_report(clocks: list[dict], fps: Fps) -> dict:
         for s, clock in c["streams"].items():
             entry = {**clock, "offset_frames": clock["offset"],
                      "offset_sd_frames": clock["offset_sd"]}
+            apart = entry.pop("clock_disagreement", None)
+            if apart is not None:
+                entry["clock_disagreement_frames"] = apart
             if seconds:
                 entry.update(offset=clock["offset"] / ref_fps,
                              offset_sd=clock["offset_sd"] / ref_fps)
@@ -219,6 +238,8 @@ def sync_report(clocks: list[dict], fps: Fps) -> dict:
                 entry["offset_ms"] = 1000.0 * clock["offset"] / ref_fps
                 entry["offset_sd_ms"] = 1000.0 * clock["offset_sd"] / ref_fps
                 entry["implied_fps"] = ref_fps / clock["rate"]
+                if apart is not None:
+                    entry["clock_disagreement_ms"] = 1000.0 * apart / ref_fps
             own = stream_fps(fps, s)
             if own is not None:
                 entry["fps"] = own

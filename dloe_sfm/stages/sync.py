@@ -109,7 +109,8 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
     ``streams`` (``offset_frames``, ``offset_sd_frames``, ``rate``, ``rate_sd``, ``rate_held``
     (the report's: the rate held at the known frame rates' ratio), ``images``,
     with the reference's fps ``offset_s``, ``offset_sd_s``, ``implied_fps``, with the stream's
-    own ``fps`` and the check against it, ``core.sync.rate_check``); ``fps`` (as
+    own ``fps`` and the check against it, ``core.sync.rate_check``; where the event's clocks
+    were dropped, ``clocks_dropped``, ``clock_disagreement_frames`` and ``_s``); ``fps`` (as
     ``parse_fps``) replaces the report's rates. The event with the most images also at the top
     level."""
     events = []
@@ -122,9 +123,14 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
             entry = {"offset_frames": frames, "offset_sd_frames": sd, "rate": c["rate"],
                      "rate_sd": c["rate_sd"], "rate_held": bool(c.get("rate_held")),
                      "images": c.get("images")}
+            apart = c.get("clock_disagreement_frames")
+            if isinstance(apart, (int, float)):
+                entry["clock_disagreement_frames"] = apart
             if ref_fps is not None:
                 entry.update(offset_s=frames / ref_fps, offset_sd_s=sd / ref_fps,
                              implied_fps=ref_fps / c["rate"])
+                if "clock_disagreement_frames" in entry:
+                    entry["clock_disagreement_s"] = apart / ref_fps
             own = stream_fps(fps, int(name)) if fps is not None else c.get("fps")
             if own is not None:
                 entry["fps"] = own
@@ -132,6 +138,7 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
                     entry.update(rate_check(c, ref_fps, own))
             streams[name] = entry
         events.append({"event": event.get("event"), "base": event.get("base"),
+                       "clocks_dropped": bool(event.get("clocks_dropped")),
                        "reference_stream": ref, "reference_fps": ref_fps, "streams": streams})
     main = max(events, key=lambda e: sum(c["images"] or 0 for c in e["streams"].values()),
                default={"reference_stream": None, "reference_fps": None, "streams": {}})
@@ -156,6 +163,12 @@ def format_table(table: dict) -> str:
                          f"{c['offset_sd_frames']:8.4f} {c['rate']:8.6f} {rate_sd}"
                          f" {c['images'] or 0:>6}" + ("  !" if c.get("fps_consistent") is False
                                                       else ""))
+        if event["clocks_dropped"]:
+            apart = max((abs(c.get("clock_disagreement_frames", 0.0))
+                         for c in event["streams"].values()), default=0.0)
+            lines.append("  ~ the streams' fitted clocks predicted held-out detections worse "
+                         "than DLOE's graph: the offsets are the graph's, and the uncertainty "
+                         f"includes the two's disagreement (up to {apart:.2f} frames)")
     if any(c.get("fps_consistent") is False for e in table["events"]
            for c in e["streams"].values()):
         lines.append(f"! the clock's rate is more than {RATE_CHECK_SD:g} standard uncertainties "
