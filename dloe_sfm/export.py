@@ -35,6 +35,7 @@ from .core.sync import (
     Fps,
     capture_fps,
     check_fps,
+    largest_disagreement,
     stream_clocks,
     sync_report,
     times_in_unit,
@@ -387,14 +388,12 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                     "wrong rates, its offset and times are not to be trusted", event["event"], s,
                     clock["implied_fps"], clock["fps"], 100 * clock["fps_deviation"],
                     clock["fps_deviation_sd"])
-    for event in sync["events"]:
         if event["clocks_dropped"]:
             logger.warning(
                 "event %d: the streams' fitted clocks predicted held-out detections worse than "
                 "DLOE's graph; the offsets are the graph's, uncertain by the two's disagreement "
                 "(up to %.2f frames, report.json sync: clock_disagreement_frames)", event["event"],
-                max((abs(c["clock_disagreement_frames"]) for c in event["streams"].values()
-                     if "clock_disagreement_frames" in c), default=0.0))
+                largest_disagreement(event))
     times = times_in_unit(times, result.events, sync, fps)
 
     with open(folder / "sequence.csv", "w", newline="") as f:

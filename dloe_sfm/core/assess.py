@@ -197,28 +197,31 @@ def neighbour_deviation(X: np.ndarray, W: sp.csr_matrix, observed: np.ndarray,
     return dev
 
 
+def _row_means(W: sp.csr_matrix, values) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) every row's W-weighted mean of ``values(rows, cols)`` over its entries (0 where the
+    row has none) and (N,) whether it has any."""
+    coo = W.tocoo()
+    n = W.shape[0]
+    sums = np.bincount(coo.row, coo.data, minlength=n).astype(np.float64)
+    means = np.bincount(coo.row, coo.data * values(coo.row, coo.col),
+                        minlength=n).astype(np.float64)
+    has = sums > 0
+    means[has] /= sums[has]
+    return means, has
+
+
 def typical_step(X: np.ndarray, W: sp.csr_matrix) -> float:
     """Median over images of the W-weighted RMS distance to their neighbours' shapes (1 when
     nothing moves)."""
-    coo = W.tocoo()
-    d = np.sqrt(((X[coo.row] - X[coo.col]) ** 2).sum(axis=2).mean(axis=1))
-    n = X.shape[0]
-    sums = np.bincount(coo.row, coo.data, minlength=n)
-    step = np.bincount(coo.row, coo.data * d, minlength=n)[sums > 0] / sums[sums > 0]
-    typical = float(np.median(step)) if step.size else 0.0
+    step, has = _row_means(W, lambda r, c: np.sqrt(((X[r] - X[c]) ** 2).sum(axis=2).mean(axis=1)))
+    typical = float(np.median(step[has])) if has.any() else 0.0
     return typical if typical > 0 else 1.0
 
 
 def gap_ratio(f: np.ndarray, W: sp.csr_matrix) -> np.ndarray:
     """(N,) every image's W-weighted time gap to its neighbours along ``f``, over the median of
     those gaps (1 without neighbours): how much farther than usual its row has to reach."""
-    coo = W.tocoo()
-    n = f.size
-    sums = np.bincount(coo.row, coo.data, minlength=n).astype(np.float64)
-    gap = np.bincount(coo.row, coo.data * np.abs(f[coo.row] - f[coo.col]),
-                      minlength=n).astype(np.float64)
-    has = sums > 0
-    gap[has] /= sums[has]
+    gap, has = _row_means(W, lambda r, c: np.abs(f[r] - f[c]))
     typical = float(np.median(gap[has])) if has.any() else 0.0
     return np.where(has & (typical > 0), gap / max(typical, 1e-300), 1.0)
 

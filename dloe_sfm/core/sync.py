@@ -249,6 +249,13 @@ def sync_report(clocks: list[dict], fps: Fps) -> dict:
     return {"time_unit": "s" if seconds else "frame", "events": events}
 
 
+def largest_disagreement(event: dict) -> float:
+    """The largest ``clock_disagreement_frames`` (absolute) of a ``sync`` event's streams (0
+    where its clocks were not dropped)."""
+    return max((abs(c.get("clock_disagreement_frames", 0.0)) for c in event["streams"].values()),
+               default=0.0)
+
+
 def rate_check(clock: dict, ref_fps: float | None, fps: float) -> dict:
     """A stream's fitted clock (``rate`` ± ``rate_sd`` reference frames per own frame over
     ``frame_span`` frames) against its known frame rate ``fps`` and the reference's ``ref_fps``:

@@ -10,7 +10,14 @@ import math
 import sys
 from pathlib import Path
 
-from ..core.sync import RATE_CHECK_DRIFT, RATE_CHECK_SD, Fps, rate_check, stream_fps
+from ..core.sync import (
+    RATE_CHECK_DRIFT,
+    RATE_CHECK_SD,
+    Fps,
+    largest_disagreement,
+    rate_check,
+    stream_fps,
+)
 from ..errors import InputError
 from ..io import atomic_path, check_not_input
 
@@ -164,11 +171,10 @@ def format_table(table: dict) -> str:
                          f" {c['images'] or 0:>6}" + ("  !" if c.get("fps_consistent") is False
                                                       else ""))
         if event["clocks_dropped"]:
-            apart = max((abs(c.get("clock_disagreement_frames", 0.0))
-                         for c in event["streams"].values()), default=0.0)
             lines.append("  ~ the streams' fitted clocks predicted held-out detections worse "
                          "than DLOE's graph: the offsets are the graph's, and the uncertainty "
-                         f"includes the two's disagreement (up to {apart:.2f} frames)")
+                         f"includes the two's disagreement (up to {largest_disagreement(event):.2f}"
+                         " frames)")
     if any(c.get("fps_consistent") is False for e in table["events"]
            for c in e["streams"].values()):
         lines.append(f"! the clock's rate is more than {RATE_CHECK_SD:g} standard uncertainties "
