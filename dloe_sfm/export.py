@@ -378,7 +378,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     check_fps(fps, capture.stream_ids)
     fps = capture_fps(capture) if fps is None else fps
     sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"],
-                                     result.clock_dropped), fps)
+                                     result.embedding), fps)
     for event in sync["events"]:
         for s, clock in event["streams"].items():
             if clock.get("fps_consistent") is False:
@@ -391,8 +391,9 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         if event["clocks_dropped"]:
             logger.warning(
                 "event %d: the streams' fitted clocks predicted held-out detections worse than "
-                "DLOE's graph; the offsets are the graph's, uncertain by the two's disagreement "
-                "(up to %.2f frames, report.json sync: clock_disagreement_frames)", event["event"],
+                "DLOE's graph, which gives the points; the times and offsets are the clocks', "
+                "uncertain by their disagreement with the graph's time line (up to %.2f frames, "
+                "report.json sync: clock_disagreement_frames)", event["event"],
                 largest_disagreement(event))
     times = times_in_unit(times, result.events, sync, fps)
 

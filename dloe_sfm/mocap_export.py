@@ -2,7 +2,8 @@
 
 Time. dloe_sfm knows no frame rates, so every image's time is counted in frames of its event's
 reference stream (the event's video with the most images), by the most faithful base the
-result holds, per event: ``clock`` (the streams' fitted affine clocks, ``Result.clock``),
+result holds, per event: ``clock`` (the streams' fitted affine clocks, ``Result.clock``, or
+those the held-out check dropped for the points, ``Result.clock_dropped``),
 ``affine embedding`` (the embedding is the streams' affine clocks: every stream's images lie
 on a line in their frame numbers), else ``rank`` (the reference stream's images at their
 frames, the others between them evenly by estimated order; an event without a video: one
@@ -48,7 +49,8 @@ class Timeline:
     """Estimated time of every image (module docstring).
 
     time : (N,) float, in ``unit``; events : per event (in estimated order) its label, time
-    ``base``, ``reference_stream`` (None without a video), ``start`` / ``end`` time,
+    ``base``, ``clocks_dropped`` (the times are the clocks of ``Result.clock_dropped``, the
+    points DLOE's graph's), ``reference_stream`` (None without a video), ``start`` / ``end`` time,
     ``offset_known`` (its gap to the previous event is measured, not set) and ``max_gap``;
     rate : the fastest stream's sampling rate, samples per ``unit``.
     """
@@ -78,6 +80,11 @@ def _affine_times(u: np.ndarray, streams: np.ndarray, frames: np.ndarray,
     a, b, _ = lines[ref]
     # the reference stream's images at their frames exactly (not a rounding off them)
     return np.where(streams == ref, frames, (u - a) / b)
+
+
+def _event_times(times: np.ndarray | None, idx: np.ndarray) -> np.ndarray | None:
+    """``times`` of the event's images ``idx`` when it has them all (a ``Result`` clock)."""
+    return times[idx] if times is not None and np.isfinite(times[idx]).all() else None
 
 
 def _rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray | None:
@@ -116,12 +123,13 @@ def image_times(capture: Capture, result: Result) -> Timeline:
         videos = [s for s in ids if np.unique(frames[streams == s]).size >= 2]
         ref = max(videos, key=lambda s: (counts[ids == s][0], -s)) if videos else None
         t, base = None, "rank"
+        kept = _event_times(result.clock, idx)
+        clocks = _event_times(result.clock_dropped, idx) if kept is None else kept
         if ref is not None:
-            clocked = result.clock is not None and np.isfinite(result.clock[idx]).all()
-            u = result.clock[idx] if clocked else result.embedding[idx]
+            u = result.embedding[idx] if clocks is None else clocks
             t = _affine_times(u, streams, frames, ref)
             if t is not None and (np.diff(t) >= -AFFINE_TOLERANCE * np.ptp(t)).all():
-                base = "clock" if clocked else "affine embedding"
+                base = "affine embedding" if clocks is None else "clock"
             else:
                 t = _rank_times(streams, frames, ref)
         if t is None:
@@ -137,8 +145,9 @@ def image_times(capture: Capture, result: Result) -> Timeline:
             t = t - t.min() + prev["end"] + EVENT_GAP_FRAMES
         time[idx] = t
         periods += event_periods
-        prev = {"event": int(e), "base": base, "reference_stream": None if ref is None
-                else int(ref), "start": float(t.min()), "end": float(t.max()),
+        prev = {"event": int(e), "base": base, "clocks_dropped": base == "clock" and kept is None,
+                "reference_stream": None if ref is None else int(ref),
+                "start": float(t.min()), "end": float(t.max()),
                 "offset_known": bool(offset_known),
                 "max_gap": MAX_GAP_PERIODS * max(event_periods)}
         summaries.append(prev)

@@ -13,10 +13,11 @@ import pytest
 from dloe_sfm import reconstruct
 from dloe_sfm.cli import main as cli_main
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.pipeline import Placement, on_clocks, outlier_arrays
 from dloe_sfm.core.sync import capture_fps, check_fps, with_fps
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import export_outputs
-from dloe_sfm.io import load_capture, save_capture
+from dloe_sfm.io import load_capture, load_result, save_capture, save_result
 from dloe_sfm.stages.sync import parse_fps
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
@@ -106,13 +107,18 @@ def test_frame_rates_go_into_the_capture_and_round_trip(walking, tmp_path):
     np.testing.assert_array_equal(loaded.fps, changed.fps)
 
 
-def test_sequence_times_are_seconds_with_fps(solved):
-    capture, truth, out, _, _ = solved
+def sequence_times(out) -> tuple[np.ndarray, list[str]]:
+    """``sequence.csv``'s times and image names, in its rows' order."""
     with open(out / "sequence.csv", newline="") as f:
         rows = list(csv.DictReader(f))
+    return np.array([float(r["time"]) for r in rows]), [r["image"] for r in rows]
+
+
+def test_sequence_times_are_seconds_with_fps(solved):
+    capture, truth, out, _, _ = solved
+    t, images = sequence_times(out)
     index = {str(n): i for i, n in enumerate(capture.image_names)}
-    t = np.array([float(r["time"]) for r in rows])
-    t_true = truth.t[[index[r["image"]] for r in rows]]
+    t_true = truth.t[[index[name] for name in images]]
     error = t - t_true
     period = 1 / max(RATES)
     assert np.sqrt(np.mean((error - error.mean()) ** 2)) < 0.1 * period
@@ -201,41 +207,72 @@ def test_clocks_that_miss_the_known_frame_rates_are_flagged(solved, tmp_path, lo
     assert "!" not in capsys.readouterr().out
 
 
-def test_dropped_clocks_widen_the_graphs_offsets(solved, tmp_path, log_lines, capsys):
-    """An event whose fitted clocks the held-out check dropped keeps DLOE's graph: its offsets
-    are the graph's, and their uncertainty takes in how far the dropped clocks put each stream
-    (in the reference's frames, whatever the clocks' own origin and unit), which the report,
-    the export's log and the sync command say."""
+def test_dropped_clocks_time_the_event_and_widen_its_offsets(solved, tmp_path, log_lines,
+                                                             capsys):
+    """An event whose fitted clocks the held-out check dropped for its points (DLOE's graph
+    gives them) is still timed by those clocks: its times and offsets are theirs, and their
+    uncertainty takes in how far DLOE's own time line puts each stream (in the reference's
+    frames, whatever the clocks' own origin and unit), which the report, the export's log and
+    the sync command say."""
     capture, _, _, _, result = solved
     assert result.clock is not None  # in the reference's frames: stream 1 a frame later
     shifted = result.clock + np.where(capture.stream == 1, 1.0, 0.0)
+    order = np.argsort(shifted, kind="stable")
     fps = dict(enumerate(RATES))
-    graph = replace(result, clock=None)
-    plain = export_outputs(tmp_path / "plain", capture, graph, plots=False, fps=fps)
-    dropped = replace(graph, clock_dropped=5.0 + 2.0 * shifted)
+    alone = export_outputs(tmp_path / "alone", capture, replace(result, clock=shifted,
+                                                                order=order),
+                           plots=False, fps=fps)
+    # DLOE's own time line (the embedding) is the unshifted clocks
+    dropped = replace(result, clock=None, clock_dropped=5.0 + 2.0 * shifted, order=order)
     report = export_outputs(tmp_path / "out", capture, dropped, plots=False, fps=fps)
-    event, before = report["sync"]["events"][0], plain["sync"]["events"][0]
-    assert event["base"] == "affine embedding" and event["clocks_dropped"]
+    event, before = report["sync"]["events"][0], alone["sync"]["events"][0]
+    assert event["base"] == before["base"] == "clock" and event["clocks_dropped"]
     assert not before["clocks_dropped"]
     ref = event["reference_stream"]
     for name, clock in event["streams"].items():
         old = before["streams"][name]
-        assert clock["offset_frames"] == old["offset_frames"]
+        assert clock["offset_frames"] == pytest.approx(old["offset_frames"], abs=1e-9)
         if int(name) == ref:
             assert clock["clock_disagreement_frames"] == 0.0 and clock["offset_sd"] == 0.0
             continue
         apart = clock["clock_disagreement_frames"]
-        assert apart == pytest.approx(1.0 if name == "1" else 0.0, abs=1e-6), (name, apart)
+        assert apart == pytest.approx(-1.0 if name == "1" else 0.0, abs=1e-6), (name, apart)
         assert clock["clock_disagreement_ms"] == pytest.approx(1000 * apart / RATES[ref])
         assert clock["offset_sd_frames"] == pytest.approx(np.hypot(old["offset_sd_frames"],
                                                                    apart))
+    (t, images), (t_alone, images_alone) = (sequence_times(tmp_path / name)
+                                            for name in ("out", "alone"))
+    assert images == images_alone
+    np.testing.assert_allclose(t, t_alone, atol=1e-9)
+    # a result file keeps both time lines: an export from it reports the same
+    loaded = load_result(save_result(tmp_path / "result.npz", dropped))
+    again = export_outputs(tmp_path / "again", capture, loaded, plots=False, fps=fps)
+    assert again["sync"] == report["sync"]
     assert any("predicted held-out detections worse" in line for line in log_lines)
     target = tmp_path / "sync.json"
     assert cli_main(["sync", str(tmp_path / "out"), "--json", str(target)]) == 0
     assert "up to 1.00 frames" in capsys.readouterr().out
     table = json.loads(target.read_text())
     assert table["events"][0]["clocks_dropped"]
-    assert table["streams"]["1"]["clock_disagreement_s"] == pytest.approx(1.0 / RATES[ref])
+    assert table["streams"]["1"]["clock_disagreement_s"] == pytest.approx(-1.0 / RATES[ref])
+
+
+def test_dropped_clocks_order_their_event_and_leave_its_points(solved):
+    """The events whose clocks the held-out check dropped keep DLOE's points, graph and time
+    line (the embedding, which the sync report's disagreement measures against), and take
+    their order from the clocks (``pipeline.on_clocks``)."""
+    capture, _, _, _, result = solved
+    graph = replace(result, clock=None)
+    shifted = result.clock + np.where(capture.stream == 1, 1.0, 0.0)
+    rejected, residual = outlier_arrays(result)
+    placed = Placement(np.arange(capture.num_images), shifted, result.W, result.D, result.X,
+                       rejected, residual, result.noise_px, capture, None, 0.0)
+    out = on_clocks(graph, [], checked=False, dropped=[placed])
+    np.testing.assert_array_equal(out.order, np.argsort(shifted, kind="stable"))
+    assert not np.array_equal(out.order, graph.order)
+    np.testing.assert_array_equal(out.clock_dropped, shifted)
+    assert out.clock is None and out.X is graph.X and out.W is graph.W
+    np.testing.assert_array_equal(out.embedding, graph.embedding)
 
 
 def test_sync_command_errors_are_one_line(tmp_path, capsys):

@@ -431,8 +431,8 @@ def kept_placements(
 def judged(result: Result, placed: list[Placement], options: Options, *, checked: bool
            ) -> Result:
     """``result`` with the events of ``placed`` that ``options.stream_clocks`` keeps on their
-    clocks (:func:`kept_placements`, :func:`on_clocks`) and the clocks of the others in
-    ``clock_dropped``."""
+    clocks (:func:`kept_placements`, :func:`on_clocks`) and the others ordered by their clocks,
+    which go to ``clock_dropped``."""
     kept = kept_placements(placed, options, result)
     dropped = [p for p in placed if not any(p is q for q in kept)]
     return on_clocks(result, kept, checked=checked, dropped=dropped)
@@ -444,13 +444,18 @@ def on_clocks(result: Result, placed: list[Placement], *, checked: bool,
     chain's, their block of the order and their embedding (span kept) from the clocks,
     ``clock`` the times, ``noise_px`` the largest their rays took; with ``checked`` (the
     observations were judged again on the clocks) ``outliers`` theirs on those events. The
-    times of the events of ``dropped`` (their clocks not kept) go to ``clock_dropped``."""
+    events of ``dropped`` (their clocks not kept) keep DLOE's points, graph and embedding, but
+    take their block of the order from their clocks, whose times go to ``clock_dropped``: the
+    held-out check judges the points, and under detector noise a frame of timing hardly moves
+    a held-out image's residual, while the clock fit is the timing's own estimate from the rays
+    (docs/method.md, "Times from dropped clocks")."""
     n = result.X.shape[0]
     if dropped:
-        times = np.full(n, np.nan)
+        times, order, rank = np.full(n, np.nan), result.order.copy(), result.rank
         for p in dropped:
             times[p.idx] = p.t
-        result = replace(result, clock_dropped=times)
+            order[np.sort(rank[p.idx])] = p.idx[np.argsort(p.t, kind="stable")]
+        result = replace(result, clock_dropped=times, order=order)
     if not placed:
         return result
     X, D = result.X.copy(), result.D.copy()
@@ -486,7 +491,8 @@ def clocked(
 ) -> Result:
     """``result`` with every event that is filmed by videos placed on its streams' fitted
     affine clocks (:func:`placements`) where ``options.stream_clocks`` keeps them
-    (:func:`judged`); the others keep DLOE's graph, their clocks in ``clock_dropped``.
+    (:func:`judged`); the others keep DLOE's points and graph, ordered by their clocks
+    (``clock_dropped``).
     ``outliers`` follow the events that keep their clocks. ``offsets``: as
     :func:`placements` takes it."""
     placed = placements(capture, options, result, auto_noise=auto_noise, checked=checked,

@@ -19,7 +19,8 @@ class Result:
     X : (N, P, 3) float
         Reconstructed points of every image, also where the point was not observed.
     order : (N,) int
-        Image indices sorted by estimated time (first = earliest; direction follows the streams).
+        Image indices sorted by estimated time (first = earliest; direction follows the streams;
+        in an event with stream clocks, kept or dropped, by their times).
     A : (N, N) scipy.sparse.csr_matrix
         Estimated affinity ``D W``.
     W : (N, N) csr_matrix
@@ -51,10 +52,11 @@ class Result:
         fitted clock, in frames of its event's longest stream (NaN in an event without them);
         None when no event has them.
     clock_dropped : (N,) float or None
-        Every image's time on the clocks fitted for its event but not kept (the held-out check
-        preferred DLOE's graph), as ``clock`` counts it (NaN elsewhere); None when no event's
-        clocks were dropped. The sync report takes the two models' disagreement into its
-        uncertainty (``core.sync.stream_clocks``).
+        Every image's time on the clocks fitted for its event but not kept for its points (the
+        held-out check preferred DLOE's graph), as ``clock`` counts it (NaN elsewhere); None
+        when no event's clocks were dropped. Such an event is still ordered and timed by them
+        (``order``, the exports), and the sync report takes their disagreement with DLOE's own
+        time line (``embedding``) into its uncertainty (``core.sync.stream_clocks``).
     subject_id, point_id : (P',) int or None
         With several subjects: column k of X is point ``point_id[k]`` of subject
         ``subject_id[k]`` (P' = subjects x P). None for one subject.

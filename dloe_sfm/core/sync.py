@@ -88,12 +88,13 @@ def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames
 
 
 def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
-                  events: list[dict], dropped: np.ndarray | None = None) -> list[dict]:
+                  events: list[dict], graph: np.ndarray | None = None) -> list[dict]:
     """Every stream's clock with uncertainty, per event (module docstring).
 
     ``capture`` as from ``columns.solved_capture``; ``labels`` (N,) the images' events;
-    ``time`` (N,) and ``events`` (per event: ``event``, ``base``, ``reference_stream``) from
-    ``mocap_export.image_times``. Returns per event its ``event``, ``base``,
+    ``time`` (N,) and ``events`` (per event: ``event``, ``base``, ``clocks_dropped``,
+    ``reference_stream``) from ``mocap_export.image_times``. Returns per event its ``event``,
+    ``base``,
     ``reference_stream``, ``clocks_dropped`` and ``streams``: stream id -> ``offset``,
     ``offset_sd`` (reference frames at the stream's frame 0, relative to the reference's frame
     0), ``rate``, ``rate_sd`` (reference frames per own frame; 0 where ``rate_held``: the clock
@@ -101,11 +102,11 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
     is then theirs alone), ``base`` (the event's), ``images``, ``frame_span`` (its last frame
     less its first); streams with fewer than two frames are left out.
 
-    ``dropped`` (N,): the times of the clocks fitted but not kept (``Result.clock_dropped``).
-    In an event whose times are DLOE's graph's (base ``affine embedding``) and whose clocks
-    were dropped (``clocks_dropped``), the held-out check could not confirm either model's
-    timing: every stream also gets ``clock_disagreement`` (the dropped clocks' offset less the
-    graph's, reference frames), which joins ``offset_sd`` in quadrature.
+    ``graph`` (N,): DLOE's own time line (``Result.embedding``). An event timed by clocks the
+    held-out check dropped for its points (``clocks_dropped``: the points are DLOE's graph's)
+    has two timings the data could not tell apart: every stream also gets
+    ``clock_disagreement`` (the graph's offset less the clocks', reference frames), which joins
+    ``offset_sd`` in quadrature.
     """
     stream_ids = capture.stream_ids
     out = []
@@ -115,9 +116,8 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         ref = summary["reference_stream"]
         videos = [int(s) for s in np.unique(streams) if np.unique(frames[streams == s]).size >= 2]
         other = None
-        if (dropped is not None and summary["base"] == "affine embedding"
-                and np.isfinite(dropped[idx]).all()):
-            other = _lines(dropped[idx], streams, frames, videos)
+        if graph is not None and summary["clocks_dropped"]:
+            other = _lines(graph[idx], streams, frames, videos)
         entry = {"event": int(summary["event"]), "base": summary["base"],
                  "reference_stream": ref, "clocks_dropped": other is not None, "streams": {}}
         out.append(entry)
@@ -144,7 +144,7 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
                      "images": int((streams == s).sum()),
                      "frame_span": int(np.ptp(frames[streams == s]))}
             if other is not None:
-                # the dropped clocks in the reference's frames, as the exported times count
+                # the graph's time line in the reference's frames, as the exported times count
                 a_o, b_o = other[ref][:2]
                 apart = (other[s][0] - a_o) / b_o - (a - a_ref)
                 clock["clock_disagreement"] = apart

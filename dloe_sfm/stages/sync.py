@@ -117,7 +117,8 @@ def stream_table(sync: dict, fps: Fps = None) -> dict:
     (the report's: the rate held at the known frame rates' ratio), ``images``,
     with the reference's fps ``offset_s``, ``offset_sd_s``, ``implied_fps``, with the stream's
     own ``fps`` and the check against it, ``core.sync.rate_check``; where the event's clocks
-    were dropped, ``clocks_dropped``, ``clock_disagreement_frames`` and ``_s``); ``fps`` (as
+    were dropped for its points, ``clocks_dropped``, ``clock_disagreement_frames`` and ``_s``);
+    ``fps`` (as
     ``parse_fps``) replaces the report's rates. The event with the most images also at the top
     level."""
     events = []
@@ -172,9 +173,9 @@ def format_table(table: dict) -> str:
                                                       else ""))
         if event["clocks_dropped"]:
             lines.append("  ~ the streams' fitted clocks predicted held-out detections worse "
-                         "than DLOE's graph: the offsets are the graph's, and the uncertainty "
-                         f"includes the two's disagreement (up to {largest_disagreement(event):.2f}"
-                         " frames)")
+                         "than DLOE's graph, which gives the points: the offsets are the clocks', "
+                         "and the uncertainty includes their disagreement with the graph's time "
+                         f"line (up to {largest_disagreement(event):.2f} frames)")
     if any(c.get("fps_consistent") is False for e in table["events"]
            for c in e["streams"].values()):
         lines.append(f"! the clock's rate is more than {RATE_CHECK_SD:g} standard uncertainties "
