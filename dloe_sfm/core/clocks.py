@@ -42,7 +42,7 @@ REACH = 8
 """A stream that the fit moves this many frame periods or more from its first guess (median over
 its images, against the others, :func:`moved_periods`) may not be pinned by the rays, or the
 first guess was that far off: the clocks must then prove themselves on held-out detections
-(``pipeline.kept_placements``). The splines' knots reach that far before the first guess."""
+(``pipeline.verdicts``). The splines' knots reach that far before the first guess."""
 COARSE_KNOTS = 4.0
 """The first stage fits the clocks to the residual with knots this many times the middle spacing
 apart: its local minima a sampling interval apart smooth out, and a first guess several periods
@@ -65,6 +65,9 @@ offset in the fit when there are at least this many of them (:class:`_Offsets`).
 HOLD_MARGIN = 1.05
 """The clocks are kept when their median held-out residual is at most this many times the graph's
 (:func:`clocks_hold`)."""
+TIMING_MARGIN = 1.5
+"""Clocks dropped for the points still time their event when their median held-out residual is
+at most this many times the graph's (:func:`clocks_time`)."""
 OUT_OF_RANGE = 1e150
 """The fit's cost at clocks that put an image before the splines' first knot, or past
 :data:`SPAN_REACH` (a wild trial step of Levenberg-Marquardt): far above any real cost, so the
@@ -93,6 +96,15 @@ def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
     near-ties")."""
     return bool(np.nanmedian(clock_px) <= HOLD_MARGIN * np.nanmedian(graph_px)
                 or as_good_share(graph_px, clock_px) >= 0.5)
+
+
+def clocks_time(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether clocks that do not hold (:func:`clocks_hold`) lost narrowly enough to still time
+    their event: a median held-out residual at most :data:`TIMING_MARGIN` times the graph's
+    (arguments as :func:`clocks_hold`). Within it the loss is what the graph's many neighbours
+    gain by averaging the detections' noise, which a frame of timing hardly moves; a clock fit
+    that failed loses by twice and more (docs/method.md, "Times from dropped clocks")."""
+    return bool(np.nanmedian(clock_px) <= TIMING_MARGIN * np.nanmedian(graph_px))
 
 
 def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import replace
+from enum import Enum
 from typing import NamedTuple
 
 import numpy as np
@@ -19,6 +20,7 @@ from .clocks import (
     as_good_share,
     chain_predicted,
     clocks_hold,
+    clocks_time,
     fit_clocks,
     moved_periods,
     ray_equations,
@@ -255,15 +257,24 @@ def robust_rounds(
     ), solved
 
 
+class Verdict(Enum):
+    """What the held-out check (:func:`clocks_predict`) makes of one event's clocks."""
+
+    KEPT = "kept"  # the points are placed on them
+    TIMING = "timing"  # DLOE's graph gives the points, the clocks the order and times
+    REJECTED = "rejected"  # DLOE's graph gives both
+
+
 def clocks_predict(
     capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
     noise_px: float | None = None, clock: np.ndarray | None = None
-) -> bool:
+) -> Verdict:
     """Whether one event's clocks ``t``, with the rays of ``noise_px`` (default the graph's,
     ``options.noise_px``; 0: hard rays), predict held-out images' detections about as well as
     DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
-    most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line), logged either
-    way. ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks` has them."""
+    most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line): kept; else
+    whether they lost narrowly enough to time the event (``clocks.clocks_time``); logged.
+    ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks` has them."""
     window, sub = middle_window(capture, t)
     graph = held_out_px(sub, options, X_world[window], D[window],
                         soft_ray_weight(capture, options), images=True)
@@ -271,12 +282,16 @@ def clocks_predict(
         ticked = options if noise_px is None else options.replace(noise_px=noise_px)
         clock = held_out_px(sub, ticked, X_world[window], D[window],
                             soft_ray_weight(capture, ticked), times=t[window], images=True)
-    keep = clocks_hold(graph, clock)
+    verdict = (Verdict.KEPT if clocks_hold(graph, clock)
+               else Verdict.TIMING if clocks_time(graph, clock) else Verdict.REJECTED)
+    said = {Verdict.KEPT: "clocks kept",
+            Verdict.TIMING: "the clocks fail, DLOE's graph is kept for the points, the clocks "
+                            "time the images",
+            Verdict.REJECTED: "the clocks fail clearly, DLOE's graph is kept"}
     logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
                 "px, at least as good on %.0f %% of them: %s", np.nanmedian(graph),
-                np.nanmedian(clock), 100 * as_good_share(graph, clock),
-                "clocks kept" if keep else "the clocks fail, DLOE's graph is kept")
-    return keep
+                np.nanmedian(clock), 100 * as_good_share(graph, clock), said[verdict])
+    return verdict
 
 
 def soft_on_clocks(
@@ -413,29 +428,28 @@ def placements(
     return placed
 
 
-def kept_placements(
-    placed: list[Placement], options: Options, result: Result
-) -> list[Placement]:
-    """The placements that ``options.stream_clocks`` keeps: with ``auto`` those whose clocks
-    predict held-out images about as well as the graph of ``result`` (:func:`clocks_predict`);
-    with ``on`` all, except that a fit that moved a stream ``clocks.REACH`` frame periods or more
-    from DLOE's placement must predict as well too: the rays may not pin its clocks, or DLOE's
-    placement was that far off (docs/method.md, "Stream clocks")."""
+def verdicts(placed: list[Placement], options: Options, result: Result) -> list[Verdict]:
+    """What ``options.stream_clocks`` makes of each placement: with ``auto`` the held-out check
+    against the graph of ``result`` (:func:`clocks_predict`); with ``on`` kept, except that a
+    fit that moved a stream ``clocks.REACH`` frame periods or more from DLOE's placement is
+    checked too: the rays may not pin its clocks, or DLOE's placement was that far off
+    (docs/method.md, "Stream clocks")."""
     checked = options.stream_clocks is Clocks.AUTO
-    return [p for p in placed
-            if (p.moved < REACH and not checked)
-            or clocks_predict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t, p.noise,
-                              p.held)]
+    return [Verdict.KEPT if p.moved < REACH and not checked
+            else clocks_predict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t,
+                                p.noise, p.held)
+            for p in placed]
 
 
 def judged(result: Result, placed: list[Placement], options: Options, *, checked: bool
            ) -> Result:
     """``result`` with the events of ``placed`` that ``options.stream_clocks`` keeps on their
-    clocks (:func:`kept_placements`, :func:`on_clocks`) and the others ordered by their clocks,
-    which go to ``clock_dropped``."""
-    kept = kept_placements(placed, options, result)
-    dropped = [p for p in placed if not any(p is q for q in kept)]
-    return on_clocks(result, kept, checked=checked, dropped=dropped)
+    clocks (:func:`verdicts`, :func:`on_clocks`), and those whose clocks lost the held-out
+    check narrowly ordered by them, which go to ``clock_dropped``."""
+    said = verdicts(placed, options, result)
+    kept = [p for p, v in zip(placed, said, strict=True) if v is Verdict.KEPT]
+    timing = [p for p, v in zip(placed, said, strict=True) if v is Verdict.TIMING]
+    return on_clocks(result, kept, checked=checked, dropped=timing)
 
 
 def on_clocks(result: Result, placed: list[Placement], *, checked: bool,
