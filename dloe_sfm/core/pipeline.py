@@ -269,12 +269,13 @@ def clocks_predict(
     capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
     noise_px: float | None = None, clock: np.ndarray | None = None
 ) -> Verdict:
-    """Whether one event's clocks ``t``, with the rays of ``noise_px`` (default the graph's,
-    ``options.noise_px``; 0: hard rays), predict held-out images' detections about as well as
-    DLOE's graph with its own (``clocks.clocks_hold``; ``alternation.held_out_px`` on at
-    most ``noise.CHECK_IMAGES`` images in the middle of the clocks' time line): kept; else
-    whether they lost narrowly enough to time the event (``clocks.clocks_time``); logged.
-    ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks` has them."""
+    """The verdict on one event's clocks ``t``: kept when, with the rays of ``noise_px``
+    (default the graph's, ``options.noise_px``; 0: hard rays), they predict held-out images'
+    detections about as well as DLOE's graph with its own (``clocks.clocks_hold``;
+    ``alternation.held_out_px`` on at most ``noise.CHECK_IMAGES`` images in the middle of the
+    clocks' time line); else timing when they lost narrowly (``clocks.clocks_time``); else
+    rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks`
+    has them."""
     window, sub = middle_window(capture, t)
     graph = held_out_px(sub, options, X_world[window], D[window],
                         soft_ray_weight(capture, options), images=True)
