@@ -237,22 +237,21 @@ def affine_time(
                 slope, icpt = theil_sen(frames[few].astype(float), at[c, few])
             if slope > 0:
                 pairs.append((d, c, np.log(slope), icpt, other.size))
-    # t = a_s + b_s f  =>  b_d = slope b_c,  a_d = a_c + b_c icpt
+    # t = a_s + b_s f  =>  log b_d - log b_c = log slope,  a_d - a_c = b_c icpt: one weighted
+    # system of the pairs (the reference's row pins it) for both
     A = np.zeros((len(pairs) + 1, k))
-    y = np.zeros(len(pairs) + 1)
     wts = np.ones(len(pairs) + 1)
-    for r, (d, c, lslope, _, size) in enumerate(pairs):
-        A[r, d], A[r, c], y[r], wts[r] = 1.0, -1.0, lslope, np.sqrt(size)
+    for r, (d, c, _, _, size) in enumerate(pairs):
+        A[r, d], A[r, c], wts[r] = 1.0, -1.0, np.sqrt(size)
     A[-1, ref], wts[-1] = 1.0, 1e3
+    Aw = A * wts[:, None]
     if known is not None:
         b = known[ref] / known
     else:
-        b = np.exp(np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0])
-    A[:] = 0.0
-    for r, (d, c, _, icpt, _) in enumerate(pairs):
-        A[r, d], A[r, c], y[r] = 1.0, -1.0, b[c] * icpt
-    A[-1, ref], y[-1] = 1.0, 0.0
-    a = np.linalg.lstsq(A * wts[:, None], y * wts, rcond=None)[0]
+        lslope = np.array([pair[2] for pair in pairs] + [0.0])
+        b = np.exp(np.linalg.lstsq(Aw, lslope * wts, rcond=None)[0])
+    icpt = np.array([b[c] * i for _, c, _, i, _ in pairs] + [0.0])
+    a = np.linalg.lstsq(Aw, icpt * wts, rcond=None)[0]
     t = np.median(a[:, None] + b[:, None] * at, axis=0)  # lone photos: through every line
     for c, idx in enumerate(lines):
         t[idx] = a[c] + b[c] * frames[idx]

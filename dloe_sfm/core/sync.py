@@ -94,13 +94,13 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
     ``capture`` as from ``columns.solved_capture``; ``labels`` (N,) the images' events;
     ``time`` (N,) and ``events`` (per event: ``event``, ``base``, ``clocks_dropped``,
     ``reference_stream``) from ``mocap_export.image_times``. Returns per event its ``event``,
-    ``base``,
-    ``reference_stream``, ``clocks_dropped`` and ``streams``: stream id -> ``offset``,
-    ``offset_sd`` (reference frames at the stream's frame 0, relative to the reference's frame
-    0), ``rate``, ``rate_sd`` (reference frames per own frame; 0 where ``rate_held``: the clock
-    fit held the rates at the ratios of the capture's frame rates, and the offsets' uncertainty
-    is then theirs alone), ``base`` (the event's), ``images``, ``frame_span`` (its last frame
-    less its first); streams with fewer than two frames are left out.
+    ``base``, ``reference_stream``, ``clocks_dropped`` and ``streams``: stream id ->
+    ``offset``, ``offset_sd`` (reference frames at the stream's frame 0, relative to the
+    reference's frame 0), ``rate``, ``rate_sd`` (reference frames per own frame; 0 where
+    ``rate_held``: the clock fit held the rates at the ratios of the capture's frame rates, and
+    the offsets' uncertainty is then theirs alone), ``base`` (the event's), ``images``,
+    ``frame_span`` (its last frame less its first); streams with fewer than two frames are left
+    out.
 
     ``graph`` (N,): DLOE's own time line (``Result.embedding``). An event timed by clocks the
     held-out check dropped for its points (``clocks_dropped``: the points are DLOE's graph's)
