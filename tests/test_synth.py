@@ -147,3 +147,33 @@ def test_cli_refuses_swaps_with_the_detector(assets_dir, tmp_path):
         simulate_stage.main(assets_dir / "mocap" / "jumping_1.npz", tmp_path / "c.npz",
                             SimulationSettings(detector="openpose"), swaps=0.1)
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_lone_photos_and_bursts_come_from_handheld_cameras_all_around(jumping):
+    """The crowd mode: lone photos (stream -1, no frame rate) and bursts of 2-5 frames at one
+    period in 0.1-1 s, each from its own camera around the motion, every point in front of it
+    and the person mostly in the picture; the ring's streams are drawn as without them."""
+    s = SimulationSettings(num_streams=2, lone_photos=40, bursts=6, duration=2.0, seed=3)
+    capture, truth = simulate(jumping, s)
+    lone = capture.stream == -1
+    assert lone.sum() == 40 and np.isnan(capture.fps[lone]).all()
+    ring = np.isin(capture.stream, [0, 1])
+    assert np.isfinite(capture.fps[ring]).all()
+    plain, plain_truth = simulate(jumping, SimulationSettings(num_streams=2, duration=2.0, seed=3))
+    np.testing.assert_array_equal(truth.t[ring], plain_truth.t)
+    for b in range(2, 8):
+        mine = capture.stream == b
+        assert 2 <= mine.sum() <= 5 and np.isnan(capture.fps[mine]).all()
+        gaps = np.diff(truth.t[mine][np.argsort(capture.frame[mine])])
+        np.testing.assert_allclose(gaps, gaps[0], rtol=1e-9)
+        assert 0.1 - 1e-9 <= gaps[0] <= 1.0 + 1e-9
+    hand = ~ring
+    centres = {tuple(c) for c in capture.C[hand].round(9)}
+    assert len(centres) == 40 + 6  # one camera per photo and per burst
+    assert len({float(k) for k in capture.K[lone, 0, 0]}) == 40
+    depth = np.einsum("nk,npk->np", capture.R[:, 2], truth.X - capture.C[:, None, :])
+    assert (depth > 0).all()
+    inside = ((capture.x >= 0) & (capture.x <= s.image_size)).all(axis=2)
+    assert inside[hand].mean() > 0.95
+    yaw = np.arctan2(capture.C[lone, 0], capture.C[lone, 2])
+    assert np.ptp(np.unwrap(np.sort(yaw))) > np.pi  # all around, not on one side

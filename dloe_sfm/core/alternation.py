@@ -29,6 +29,7 @@ from .robust import predicted, residuals_px
 from .sequencing import (
     MDS_SAMPLE,
     affine_time,
+    backbone_embedding,
     distance_matrix,
     line_embedding,
     mds_embedding,
@@ -79,6 +80,9 @@ def sequence(
             mds = orient(mds_embedding(Z), prob.streams[sample], frames[sample])
             slope = np.polyfit(t[sample], mds, 1)[0]
             return t * abs(slope), t
+        if len(placement.lines) < 2:  # no two videos: the shapes alone order the images
+            f = orient(backbone_embedding(X), prob.streams, frames)
+            return f, f
     Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
     mds = orient(mds_embedding(Z), prob.streams, frames)
     if not final or options.embedding is Embedding.MDS:

@@ -13,6 +13,8 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree, shortest_path
+from scipy.spatial import cKDTree
 from scipy.stats import kendalltau
 
 from .dtw import FULL_TABLE, CostFn, align_many, in_blocks
@@ -21,6 +23,9 @@ from .options import Distance, Embedding
 THEIL_SEN_POINTS = 256
 """Images of a stream (evenly spaced) the robust line of one stream against another uses
 (``affine_time``: Theil-Sen's cost grows as their square)."""
+BACKBONE_NEIGHBOURS = 10
+"""Nearest shapes every image is linked to in the graph whose spanning tree
+:func:`backbone_embedding` follows."""
 MDS_SAMPLE = 2000
 """Images the length scale of the affine clocks' prior is measured on
 (``alternation.sequence``): a dense table of at most this size with videos."""
@@ -280,6 +285,59 @@ def distance_matrix(
     if Distance(kind) is Distance.ARC:
         return arc_distance(X, streams, frames, placement, subset)
     return euclidean_distance(X if subset is None else X[subset])
+
+
+def neighbour_graph(F: np.ndarray, k: int) -> sp.csr_matrix:
+    """(N, N) sparse symmetric graph linking every row of ``F`` (N, d) to its ``k`` nearest
+    rows, weighted by their distance, with the closest pair between components added until it
+    is connected."""
+    n = F.shape[0]
+    k = min(k, n - 1)
+    dist, nb = cKDTree(F).query(F, k + 1)
+    rows = np.repeat(np.arange(n), k)
+    # a tiny floor keeps coincident shapes linked (csgraph reads an explicit 0 as no edge)
+    G = sp.csr_matrix((np.maximum(dist[:, 1:].ravel(), 1e-300), (rows, nb[:, 1:].ravel())),
+                      shape=(n, n))
+    G = G.maximum(G.T).tolil()
+    count, comp = connected_components(G, directed=False)
+    while count > 1:
+        inside = comp == np.argmin(np.bincount(comp))
+        outside = np.flatnonzero(~inside)
+        d, j = cKDTree(F[outside]).query(F[inside])
+        i = int(np.argmin(d))
+        a, b = int(np.flatnonzero(inside)[i]), int(outside[j[i]])
+        G[a, b] = G[b, a] = max(float(d[i]), 1e-300)
+        count, comp = connected_components(G, directed=False)
+    return G.tocsr()
+
+
+def backbone_embedding(X: np.ndarray, k: int = BACKBONE_NEIGHBOURS) -> np.ndarray:
+    """Every image's place along the longest path of the minimum spanning tree of its shapes'
+    ``k``-nearest-neighbour graph (X's units): the sequencing of images with no stream order.
+
+    Shapes sampled along a motion leave a spanning tree that is the motion's path with short
+    twigs where noise or a revisited pose branches off; its longest path (two sweeps from a
+    node) is the path, and an image off it takes the place where its twig meets it. Sparse:
+    O(N k) edges, no N x N table; where the motion comes back close to a pose, the tree may
+    still take the shortcut (docs/method.md, "Lone photos").
+    """
+    n = X.shape[0]
+    if n < 3:
+        return np.arange(n, dtype=np.float64)
+    tree = minimum_spanning_tree(neighbour_graph(X.reshape(n, -1), k))
+    tree = tree + tree.T
+    first = int(np.argmax(shortest_path(tree, directed=False, indices=0)))
+    dist, pred = shortest_path(tree, directed=False, indices=first, return_predecessors=True)
+    node = int(np.argmax(dist))
+    on_path = np.zeros(n, dtype=bool)
+    while node >= 0:
+        on_path[node] = True
+        node = pred[node]
+    f = np.where(on_path, dist, 0.0)
+    for i in np.argsort(dist, kind="stable"):  # a twig's nodes after the node it hangs from
+        if not on_path[i]:
+            f[i] = f[pred[i]]
+    return f
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:

@@ -119,6 +119,12 @@ class SimulationSettings:
     """Start each stream at a uniform random time within its first period (else streams start
     k / num_streams of a period apart)."""
     num_streams: int = 4
+    lone_photos: int = 0
+    """Lone photos besides the streams (``num_streams`` may then be 0): each its own handheld
+    camera anywhere around the motion (``crowd_cameras``), at a uniform random instant."""
+    bursts: int = 0
+    """Short bursts besides the streams: handheld cameras placed as lone photos, each taking 2-5
+    frames at 1-10 Hz from a random instant (short streams, frame order known)."""
     noise: float = 0.0
     """Std of Gaussian 2D noise, pixels."""
     detector: str | None = None
@@ -154,8 +160,14 @@ class SimulationSettings:
         finite = {k: is_finite(v) for k, v in values.items()}
         integral = {k: isinstance(v, numbers.Integral) for k, v in values.items()}
         check("rate", finite["rate"] and 0 < self.rate <= 1000, "in (0, 1000] frames/s")
-        check("num_streams", integral["num_streams"] and 1 <= self.num_streams <= 64,
-              "an integer in [1, 64]")
+        check("num_streams", integral["num_streams"] and 0 <= self.num_streams <= 64,
+              "an integer in [0, 64]")
+        check("lone_photos", integral["lone_photos"] and 0 <= self.lone_photos <= 100000,
+              "an integer in [0, 100000]")
+        check("bursts", integral["bursts"] and 0 <= self.bursts <= 10000,
+              "an integer in [0, 10000]")
+        check("num_streams", self.num_streams + self.lone_photos + self.bursts > 0,
+              "at least 1 when there are no --lone-photos or --bursts")
         check("rates", self.rates is None or (
             isinstance(self.rates, tuple | list) and len(self.rates) == self.num_streams
             and all(is_finite(r) and 0 < r <= 1000 for r in self.rates)),
@@ -231,13 +243,15 @@ def _rates(s: SimulationSettings) -> tuple[float, ...]:
 
 def _stream_samples(
     span: float, fps: float, s: SimulationSettings, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(t, stream, frame) of streams sampling [0, ``span``] (mocap frames at ``fps``) at
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, stream, frame, camera) of streams sampling [0, ``span``] (mocap frames at ``fps``) at
     ``s.rate`` with start offsets k / num_streams of a period (or each at its own ``s.rates``
     from a random time in its first period: ``s.random_offsets``), minus ``s.drop`` of the
-    images."""
+    images; then ``s.bursts`` short streams and ``s.lone_photos`` lone photos (stream -1) at
+    random instants. ``camera`` indexes the ring's cameras, then one handheld camera per burst
+    and per lone photo."""
     rates = _rates(s)
-    times, streams, frames = [], [], []
+    times, streams, frames = [np.zeros(0)], [np.zeros(0)], [np.zeros(0)]
     for k in range(s.num_streams):
         period = fps / rates[k]
         start = rng.uniform(0, period) if s.random_offsets else k * period / s.num_streams
@@ -246,11 +260,66 @@ def _stream_samples(
         times.append(t)
         streams.append(np.full(t.size, k))
         frames.append(np.arange(t.size))
-    t, stream, frame = (np.concatenate(v) for v in (times, streams, frames))
+    t, stream, frame = (np.concatenate(v).astype(d) for v, d in (
+        (times, np.float64), (streams, np.int64), (frames, np.int64)))
     if s.drop > 0:
         keep = rng.random(t.size) >= s.drop
         t, stream, frame = t[keep], stream[keep], frame[keep]
-    return t, stream, frame
+    camera = stream.copy()
+    if s.bursts or s.lone_photos:
+        hand_t, hand_stream, hand_frame = [t], [stream], [frame]
+        for b in range(s.bursts):
+            period = fps / rng.uniform(1.0, 10.0)
+            count = min(int(rng.integers(2, 6)), int(span / period) + 1)
+            start = rng.uniform(0, span - (count - 1) * period)
+            hand_t.append(start + period * np.arange(count))
+            hand_stream.append(np.full(count, s.num_streams + b))
+            hand_frame.append(np.arange(count))
+        hand_t.append(rng.uniform(0, span, s.lone_photos))
+        hand_stream.append(np.full(s.lone_photos, -1))
+        hand_frame.append(np.zeros(s.lone_photos, dtype=np.int64))
+        t, stream, frame = (np.concatenate(v) for v in (hand_t, hand_stream, hand_frame))
+        camera = np.where(stream >= 0, stream,
+                          s.num_streams + s.bursts + np.cumsum(stream < 0) - 1)
+    return t, stream, frame, camera
+
+
+def crowd_cameras(
+    centre: np.ndarray,
+    num: int,
+    rng: np.random.Generator,
+    *,
+    radius: float = 3.0,
+    focal: float = 1000.0,
+    image_size: int = 1000,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``num`` handheld cameras anywhere around ``centre`` (y up): a uniform random direction,
+    1 to 2.5 x ``radius`` away, held 0.6 m below to 0.8 m above it, aimed within about 0.2 m
+    of it with up to 5 degrees of roll, the focal length scaled with the distance (0.8-1.25 x,
+    so the subject fills about as much of the picture as in the ring's cameras).
+
+    Returns K (num, 3, 3), R (num, 3, 3) world-to-camera, C (num, 3)."""
+    yaw = rng.uniform(0, 2 * np.pi, num)
+    dist = radius * rng.uniform(1.0, 2.5, num)
+    C = centre + np.stack([dist * np.sin(yaw), rng.uniform(-0.6, 0.8, num),
+                           dist * np.cos(yaw)], axis=1)
+    target = centre + 0.2 * rng.standard_normal((num, 3))
+    f = focal * dist / radius * rng.uniform(0.8, 1.25, num)
+    roll = np.deg2rad(rng.uniform(-5.0, 5.0, num))
+    K = np.zeros((num, 3, 3))
+    K[:, 0, 0] = K[:, 1, 1] = f
+    K[:, :2, 2] = image_size / 2
+    K[:, 2, 2] = 1.0
+    R = np.empty((num, 3, 3))
+    for i in range(num):
+        z = target[i] - C[i]
+        z /= np.linalg.norm(z)
+        x = np.cross(np.array([0.0, -1.0, 0.0]), z)
+        x /= np.linalg.norm(x)
+        c, sn = np.cos(roll[i]), np.sin(roll[i])
+        spin = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
+        R[i] = spin @ np.stack([x, np.cross(z, x), z])
+    return K, R, C
 
 
 def _interpolate(pos: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -265,6 +334,7 @@ def _render(
     X_true: np.ndarray,
     stream: np.ndarray,
     frame: np.ndarray,
+    camera: np.ndarray,
     centre: np.ndarray,
     radius: float,
     s: SimulationSettings,
@@ -273,13 +343,17 @@ def _render(
     parents: np.ndarray,
     events: np.ndarray | None = None,
 ) -> Simulated:
-    """Project (N, ..., 3) points into the ring's cameras with noise (or the detector model:
-    confidences, true outliers and swaps) and missing points; ``t`` (N,) seconds, ``parents``
-    and ``events`` go to the truth."""
+    """Project (N, ..., 3) points into the ring's cameras and the handheld ones of ``camera``
+    (``_stream_samples``) with noise (or the detector model: confidences, true outliers and
+    swaps) and missing points; ``t`` (N,) seconds, ``parents`` and ``events`` go to the truth."""
     K1, R1, C1 = ring_cameras(
         centre, num=s.num_streams, radius=radius, focal=s.focal, image_size=s.image_size
     )
-    K, R, C = K1[stream], R1[stream], C1[stream]
+    if s.bursts or s.lone_photos:
+        hand = crowd_cameras(centre, s.bursts + s.lone_photos, rng, radius=radius,
+                             focal=s.focal, image_size=s.image_size)
+        K1, R1, C1 = (np.concatenate([a, b]) for a, b in zip((K1, R1, C1), hand, strict=True))
+    K, R, C = K1[camera], R1[camera], C1[camera]
     n = X_true.shape[0]
     x_clean = project(X_true.reshape(n, -1, 3), K, R, C).reshape(*X_true.shape[:-1], 2)
     if s.detector is None:
@@ -296,11 +370,16 @@ def _render(
     confidence = pairs = outliers = swaps = None
     if s.detector is not None:
         pairs = symmetric_pairs(parents)
-        x, confidence, outliers, swaps = detect(DetectorModel.load(s.detector), x_clean, stream,
+        x, confidence, outliers, swaps = detect(DetectorModel.load(s.detector), x_clean, camera,
                                                 pairs, rng, np.isfinite(x).all(axis=-1))
-    names = np.array([f"cam{k}/{f:05d}" for k, f in zip(stream, frame, strict=True)])
+    ring = (stream >= 0) & (stream < s.num_streams)
+    names = np.array([f"cam{k}/{f:05d}" if r else f"burst{k - s.num_streams}/{f:05d}" if k >= 0
+                      else f"photo{c - s.num_streams - s.bursts:05d}"
+                      for r, k, f, c in zip(ring, stream, frame, camera, strict=True)])
+    fps = np.full(n, np.nan)  # bursts and lone photos: no frame rate known
+    fps[ring] = np.array(_rates(s))[stream[ring]]
     capture = Capture(
-        x=x, K=K, R=R, C=C, stream=stream, frame=frame, fps=np.array(_rates(s))[stream],
+        x=x, K=K, R=R, C=C, stream=stream, frame=frame, fps=fps,
         image_names=names,
         confidence=confidence, symmetric_pairs=pairs,
     )
@@ -323,6 +402,6 @@ def simulate(seq: MocapSequence, settings: SimulationSettings | None = None) -> 
     pos = _window(seq, s)
     centre = pos.reshape(-1, 3).mean(axis=0)
     radius = _ring_radius(s, pos.reshape(-1, 3), centre)
-    t, stream, frame = _stream_samples(pos.shape[0] - 1, seq.fps, s, rng)
-    return _render(_interpolate(pos, t), stream, frame, centre, radius, s, rng,
+    t, stream, frame, camera = _stream_samples(pos.shape[0] - 1, seq.fps, s, rng)
+    return _render(_interpolate(pos, t), stream, frame, camera, centre, radius, s, rng,
                    (t + round(s.start * seq.fps)) / seq.fps, seq.parents)

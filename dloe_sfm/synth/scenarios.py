@@ -56,7 +56,7 @@ def simulate_events(
     clips = [_centred(_window(q, s), np.zeros(3)) for q in seqs]
     starts = np.cumsum([0.0] + [c.shape[0] + gap * fps for c in clips[:-1]])
     span = starts[-1] + clips[-1].shape[0] - 1
-    t, stream, frame = _stream_samples(span, fps, s, rng)
+    t, stream, frame, camera = _stream_samples(span, fps, s, rng)
     event = np.full(t.size, -1)
     X = np.empty((t.size, clips[0].shape[1], 3))
     for k, (clip, t0) in enumerate(zip(clips, starts, strict=True)):
@@ -64,11 +64,12 @@ def simulate_events(
         event[inside] = k
         X[inside] = _interpolate(clip, t[inside] - t0)
     keep = event >= 0
-    X, t, stream, frame, event = X[keep], t[keep], stream[keep], frame[keep], event[keep]
+    X, t, stream, frame, camera, event = (
+        a[keep] for a in (X, t, stream, frame, camera, event))
     everything = np.concatenate([c.reshape(-1, 3) for c in clips])
     radius = _ring_radius(s, everything, np.zeros(3))
-    return _render(X, stream, frame, np.zeros(3), radius, s, rng, t / fps, seqs[0].parents,
-                   event)
+    return _render(X, stream, frame, camera, np.zeros(3), radius, s, rng, t / fps,
+                   seqs[0].parents, event)
 
 
 def simulate_people(
@@ -94,11 +95,11 @@ def simulate_people(
     clips = [
         _centred(c[:length], np.array([dx, 0.0, 0.0])) for c, dx in zip(clips, offsets, strict=True)
     ]
-    t, stream, frame = _stream_samples(length - 1, fps, s, rng)
+    t, stream, frame, camera = _stream_samples(length - 1, fps, s, rng)
     X = np.stack([_interpolate(c, t) for c in clips], axis=1)
     everything = np.concatenate([c.reshape(-1, 3) for c in clips])
     radius = _ring_radius(s, everything, np.zeros(3))
-    capture, truth = _render(X, stream, frame, np.zeros(3), radius, s, rng, t / fps,
+    capture, truth = _render(X, stream, frame, camera, np.zeros(3), radius, s, rng, t / fps,
                              seqs[0].parents)
     slots = np.tile(np.arange(len(seqs)), (t.size, 1))
     if shuffle:
