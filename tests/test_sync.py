@@ -169,10 +169,13 @@ def test_sync_command_prints_and_round_trips_json(solved, tmp_path, capsys):
     assert json.loads(target.read_text())["reference_fps"] == 60.0
     other = tmp_path / "other.json"
     other.write_text("{}")
+    capsys.readouterr()
     for path in (other, out / "report.json"):
-        with pytest.raises(SystemExit) as e:
-            cli_main(["sync", str(out), "--json", str(path), "--overwrite"])
-        assert e.value.code == 2
+        for overwrite in ([], ["--overwrite"]):  # never replaced: another file is asked for
+            with pytest.raises(SystemExit) as e:
+                cli_main(["sync", str(out), "--json", str(path), *overwrite])
+            assert e.value.code == 2
+            assert "; choose another" in capsys.readouterr().err
     assert other.read_text() == "{}"
 
 

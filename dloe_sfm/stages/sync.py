@@ -191,16 +191,17 @@ def write_json(path: Path, table: dict, *, inputs: list[Path], overwrite: bool) 
     path = Path(path)
     check_not_input(path, inputs, "input")
     if path.is_dir():
-        raise InputError(f"{path}: exists and is a folder")
+        raise InputError(f"{path}: exists and is a folder; choose another --json file")
     if path.exists():
-        if not overwrite:
-            raise InputError(f"{path}: output file exists (use --overwrite to replace it)")
         try:
             kind = json.loads(path.read_text(encoding="utf-8")).get("kind")
         except (OSError, UnicodeDecodeError, ValueError, AttributeError):
             kind = None
         if kind != JSON_KIND:
-            raise InputError(f"{path}: not a dloe-sfm sync file; refusing to replace it")
+            raise InputError(f"{path}: exists and is not a dloe-sfm sync file, never replaced; "
+                             "choose another --json file")
+        if not overwrite:
+            raise InputError(f"{path}: output file exists (use --overwrite to replace it)")
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(table, indent=2) + "\n")
     return path
