@@ -3,16 +3,17 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from itertools import islice
 from pathlib import Path
 
 from ..images import IMAGE_SUFFIXES
+from .csv import REQUIRED
 
 # how a message names what each format's files are
 KINDS = {"openpose": "OpenPose JSON", "coco": "a COCO keypoint file", "mmpose": "MMPose JSON",
          "csv": "CSV keypoints", "aruco": "images (markers are found in them)"}
+_HEADER_CHARS = 4096  # a CSV header is read from this much of the file at most
 # JSON files of a folder looked at before giving up (a Pose2Sim trial holds thousands)
 _JSON_FILES_LOOKED_AT = 20
 
@@ -45,9 +46,9 @@ def _file_format(file: Path) -> str | None:
         return _json_format(json.loads(text))
     except (ValueError, RecursionError):
         pass
-    header = next(csv.reader(text.splitlines()[:1]), [])
-    return "csv" if {"image", "point_id", "x", "y"} <= {h.strip().lower() for h in header} \
-        else None
+    first_line = text[:_HEADER_CHARS].split("\n", 1)[0]
+    header = {h.strip().strip('"').lower() for h in first_line.split(",")}
+    return "csv" if set(REQUIRED) <= header else None
 
 
 def looks_like(path: Path) -> str | None:
