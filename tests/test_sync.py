@@ -210,6 +210,24 @@ def test_clocks_that_miss_the_known_frame_rates_are_flagged(solved, tmp_path, lo
     assert "!" not in capsys.readouterr().out
 
 
+def test_a_rate_a_whole_factor_off_is_named_with_the_fps_to_give(solved, tmp_path, log_lines,
+                                                                 capsys):
+    """Told a stream runs at a quarter of its rate (its images' rate, where its frame numbers
+    count every 4th frame), the warning and ``dloe-sfm sync`` name the factor and the --fps the
+    clock implies."""
+    capture, _, _, report, result = solved
+    ref = report["sync"]["events"][0]["reference_stream"]
+    s = next(k for k in range(len(RATES)) if k != ref)
+    told = {k: r / 4 if k == s else r for k, r in enumerate(RATES)}
+    export_outputs(tmp_path / "out", capture, result, plots=False, fps=told)
+    hint = "(about 4), as when its frame numbers count frames at another rate than the images'"
+    fix = f"--fps {s}={RATES[s]:g} if they count frames at that rate"
+    assert [line for line in log_lines if f"stream {s}: its clock runs at" in line
+            and hint in line and line.endswith(fix)], log_lines
+    assert cli_main(["sync", str(tmp_path / "out")]) == 0
+    assert f"! stream {s}: its clock runs" in capsys.readouterr().out
+
+
 def test_dropped_clocks_time_the_event_and_widen_its_offsets(solved, tmp_path, log_lines,
                                                              capsys):
     """An event whose fitted clocks the held-out check dropped for its points (DLOE's graph
