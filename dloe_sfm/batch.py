@@ -464,11 +464,8 @@ def run_batch(jobs: Sequence[Job], out: Path | str, *, scheduler: str | None = N
         raise InputError(f"--workers must be at least 1, got {workers}")
     out = Path(out)
     config = None if config is None else Path(config).resolve()
-    target = check_output(out, overwrite=overwrite, protected=[
+    target = check_output(out, overwrite=overwrite, marker=REPORT, protected=[
         config, *protected, *(p for job in jobs for p in _protected(job))])
-    if target.is_dir() and any(target.iterdir()) and not (target / REPORT).is_file():
-        raise InputError(f"{out}: not written by dloe-sfm batch (no {REPORT} in it); refusing "
-                         "to replace it")
     with atomic_path(target, mark=True) as tmp:
         tmp.mkdir()
         with _client(scheduler, min(workers or os.cpu_count() or 1, len(jobs))) as client:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import difflib
 import importlib
 import logging
 import re
@@ -42,6 +43,24 @@ STAGES = {
 }
 
 
+class Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` that takes no abbreviated option (``--keypoint`` is not
+    ``--keypoints``) and refuses an unknown one itself, naming the option it is close to."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, allow_abbrev=False, **kwargs)
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        unknown = next((e for e in extras if e.startswith("-")), None)
+        if unknown is not None:
+            known = [s for a in self._actions for s in a.option_strings if s.startswith("--")]
+            close = difflib.get_close_matches(unknown.split("=", 1)[0], known, n=1)
+            hint = f"did you mean {close[0]}?" if close else f"see {self.prog} --help"
+            self.error(f"unrecognized option {unknown}: {hint}")
+        return namespace, extras
+
+
 def _common_options(parser: argparse.ArgumentParser, *, top: bool) -> None:
     """``-v`` / ``-q`` on the main parser and on every subcommand (either place works); a
     subcommand's copy has no default, so it never resets what was given before it."""
@@ -55,7 +74,7 @@ def _common_options(parser: argparse.ArgumentParser, *, top: bool) -> None:
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s stage module is imported (the others load open3d etc.)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="dloe-sfm",
         description="Reconstruct moving points from asynchronous images on top of a COLMAP model.",
     )
@@ -76,7 +95,7 @@ def run_stage(module_name: str, argv: list[str] | None = None) -> int:
     """Entry of ``python -m <stage module>``: the stage's own parser, same error handling."""
     module = importlib.import_module(module_name)
     name = module_name if module_name != "__main__" else module.__spec__.name
-    parser = argparse.ArgumentParser(prog=f"python -m {name}", description=module.__doc__)
+    parser = Parser(prog=f"python -m {name}", description=module.__doc__)
     _common_options(parser, top=True)
     module.configure_parser(parser)
     args = parser.parse_args(argv)

@@ -10,6 +10,7 @@ string ``"none"`` sets an optional number (``lambda2``, ``robust_scale_px``) bac
 
 from __future__ import annotations
 
+import difflib
 import sys
 from pathlib import Path
 
@@ -37,7 +38,11 @@ def _place(text: object, limit: int = 200) -> str:
 
 
 def _checked(name: str, value: object, source: str) -> object:
-    """``check_option`` with ``source`` (file or ``--set`` argument) leading its message."""
+    """``check_option`` with ``source`` (file or ``--set`` argument) leading its message; an
+    unknown name close to an option's is answered with that option."""
+    close = [] if name in RULES else difflib.get_close_matches(name, RULES, n=1)
+    if close:
+        raise InputError(f"{source}: unknown option {shown(name)}: did you mean '{close[0]}'?")
     try:
         return check_option(name, value)
     except InputError as e:

@@ -42,7 +42,7 @@ from .core.sync import (
 )
 from .errors import InputError
 from .io import atomic_path, check_output, save_npz
-from .mocap_export import write_mocap
+from .mocap_export import warn_stepped_frames, whole_factor, write_mocap
 
 if TYPE_CHECKING:
     from .colmap import Workspace
@@ -297,7 +297,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     ``mocap_export.write_mocap`` (``export_rate`` samples per reference frame; markers
     ``s<subject>_<name>`` with several subjects). ``fps``: the streams' frame rates (one for
     all or per stream id; ``core.sync``; default the capture's own, ``Capture.fps``), for
-    ``sequence.csv``'s times in seconds and the report's ``sync``. Returns the report.
+    ``sequence.csv``'s times in seconds, the TRC / C3D / wide CSV's in seconds and Hz, and the
+    report's ``sync``. Returns the report.
     """
     detection_subject = detection_subjects(capture, result)
     capture = solved_capture(capture, result)
@@ -373,21 +374,24 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                                  repr(float(y)), repr(float(z)), int(visible[i, k]),
                                  int(subject_id[k])])
 
-    times, mocap = write_mocap(folder, capture, replace(result, X=X),
-                               column_labels(result, layout_names), export_rate=export_rate)
     check_fps(fps, capture.stream_ids)
     fps = capture_fps(capture) if fps is None else fps
+    warn_stepped_frames(capture, fps)
+    times, mocap = write_mocap(folder, capture, replace(result, X=X),
+                               column_labels(result, layout_names), export_rate=export_rate,
+                               fps=fps)
     sync = sync_report(stream_clocks(capture, result.events, times, mocap["events"],
                                      result.embedding), fps)
     for event in sync["events"]:
         for s, clock in event["streams"].items():
             if clock.get("fps_consistent") is False:
+                factor = whole_factor(clock, s)
                 logger.warning(
                     "event %d, stream %s: its clock runs at %.3f fps where its frame rate is %g "
                     "(%+.1f %%, %.0f standard uncertainties): the clock fit may have settled on "
-                    "wrong rates, its offset and times are not to be trusted", event["event"], s,
-                    clock["implied_fps"], clock["fps"], 100 * clock["fps_deviation"],
-                    clock["fps_deviation_sd"])
+                    "wrong rates, its offset and times are not to be trusted%s", event["event"],
+                    s, clock["implied_fps"], clock["fps"], 100 * clock["fps_deviation"],
+                    clock["fps_deviation_sd"], f"; {factor}" if factor else "")
         if event["clocks_dropped"]:
             logger.warning(
                 "event %d: the streams' fitted clocks predicted held-out detections worse than "

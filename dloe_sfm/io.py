@@ -39,11 +39,12 @@ def _describe(path: Path) -> str:
     return "folder" if path.is_dir() else "file"
 
 
-def _check_ours(folder: Path, name: Path | str) -> None:
-    """Refuse to replace a folder that holds anything but is not marked as dloe-sfm's."""
-    if not (folder / MARKER).is_file() and any(folder.iterdir()):
-        raise InputError(f"{name}: not written by dloe-sfm (no {MARKER} file in it); "
-                         "refusing to replace it")
+def _check_ours(folder: Path, name: Path | str, marker: str = MARKER) -> None:
+    """Refuse to replace a folder that holds anything but is not marked as dloe-sfm's (by its
+    file ``marker``): no option replaces it, so the message asks for another output path."""
+    if not (folder / marker).is_file() and any(folder.iterdir()):
+        raise InputError(f"{name}: not written by dloe-sfm (no {marker} file in it), never "
+                         "replaced; choose another output path")
 
 
 def _nearest_existing(path: Path) -> Path:
@@ -63,14 +64,16 @@ def _is_result_file(path: Path) -> bool:
 
 
 def check_output(out: Path | str, *, protected: Sequence[Path | str | None] = (),
-                 overwrite: bool = False, kind: str = "dir") -> Path:
+                 overwrite: bool = False, kind: str = "dir", marker: str = MARKER) -> Path:
     """Check an output path before any work; returns it resolved (symlinks followed).
 
     ``kind`` is ``"dir"`` (an output folder) or ``"file"`` (a result file). Refused with a
-    one-line InputError: a path that is, contains or lies inside a ``protected`` input
-    (missing ones and None are skipped); an existing output without ``overwrite``; with
-    ``overwrite``, a folder without the ``MARKER`` file (unless empty) or a file that is not a
-    result file; a location that cannot be created or written.
+    one-line InputError that says what to do: a path that is, contains or lies inside a
+    ``protected`` input (missing ones and None are skipped); a folder without the file
+    ``marker`` (``MARKER``, or a command's own output file) unless empty, or a file that is
+    not a result file: nothing replaces them, so another path is asked for, not
+    ``--overwrite``; an earlier output without ``overwrite``; a location that cannot be
+    created or written.
     """
     out = Path(out)
     target = out.resolve()
@@ -90,25 +93,28 @@ def check_output(out: Path | str, *, protected: Sequence[Path | str | None] = ()
                          "choose another output path")
     if os.path.lexists(target):
         if kind == "dir" and not target.is_dir():
-            raise InputError(f"{out}: exists and is not a folder")
+            raise InputError(f"{out}: exists and is not a folder; choose another output path")
         if kind == "file" and target.is_dir():
-            raise InputError(f"{out}: exists and is a folder")
+            raise InputError(f"{out}: exists and is a folder; choose another output path")
+        if kind == "dir":
+            _check_ours(target, out, marker)
+        if kind == "file" and not _is_result_file(target):
+            raise InputError(f"{out}: exists and is not a dloe-sfm result file, never "
+                             "replaced; choose another output path")
         if not overwrite:
             raise InputError(f"{out}: output {_describe(target)} exists "
                              "(use --overwrite to replace it)")
-        if kind == "dir":
-            _check_ours(target, out)
-        if kind == "file" and not _is_result_file(target):
-            raise InputError(f"{out}: not a dloe-sfm result file; refusing to replace it")
     base = _nearest_existing(target.parent)
     if not base.is_dir():
-        raise InputError(f"{out}: cannot create it, {base} is not a folder")
+        raise InputError(f"{out}: cannot create it, {base} is not a folder; choose another "
+                         "output path")
     try:
         with tempfile.TemporaryFile(prefix=".dloe_sfm-probe-", dir=base) as probe:
             probe.write(b"x")
             probe.flush()
     except OSError as e:
-        raise InputError(f"{out}: cannot write in {base} ({e.strerror or e})") from None
+        raise InputError(f"{out}: cannot write in {base} ({e.strerror or e}); choose a "
+                         "writable output path") from None
     return target
 
 

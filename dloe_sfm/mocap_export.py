@@ -1,7 +1,8 @@
 """Motion-capture exports of the points: TRC (OpenSim, Pose2Sim), C3D (ezc3d) and a wide CSV.
 
-Time. dloe_sfm knows no frame rates, so every image's time is counted in frames of its event's
-reference stream (the event's video with the most images), by the most faithful base the
+Time. Every image's time is first counted in frames of its event's reference stream (the
+event's video with the most images: its frame numbers, as in the file names), by the most
+faithful base the
 result holds, per event: ``clock`` (the streams' fitted affine clocks, ``Result.clock``, or
 those the held-out check dropped for the points, ``Result.clock_dropped``),
 ``affine embedding`` (the embedding is the streams' affine clocks: every stream's images lie
@@ -12,7 +13,11 @@ when both are timed by the same stream, else it is placed two of its frames afte
 
 TRC and C3D hold the points on a uniform time grid (default: the fastest stream's rate),
 linearly interpolated between a point's observations that are at most 1.5 frame periods of
-the event's slowest stream apart, empty elsewhere. Positions are in mm, taken from the model's
+the event's slowest stream apart, empty elsewhere. Where the frame rate of every event's
+reference stream is known and the same (``--fps``: the rate of its frame numbers), the three
+files are in seconds: time over that rate, TRC ``DataRate`` / ``CameraRate`` and C3D
+``POINT:RATE`` in Hz (the grid's samples per frame times it); else in reference frames, rates
+in samples per frame. Positions are in mm, taken from the model's
 units as metres (the calibration import and the simulator work in metres), in the model's
 frame as it is (not rotated to OpenSim's y-up).
 """
@@ -20,6 +25,7 @@ frame as it is (not rotated to OpenSim's y-up).
 from __future__ import annotations
 
 import csv
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +34,10 @@ import numpy as np
 
 from .core.capture import Capture
 from .core.result import Result
+from .core.sync import Fps, stream_fps
 from .errors import InputError
+
+logger = logging.getLogger("dloe_sfm")
 
 MM_PER_UNIT = 1000.0
 """Millimetres per model unit (the model's units are taken as metres)."""
@@ -42,6 +51,55 @@ MAX_POINT_SAMPLES = 10**7
 AFFINE_TOLERANCE = 1e-6
 """Largest deviation of a stream's images from a line in their frame numbers (relative to the
 span) for the embedding to count as the streams' affine clocks."""
+
+
+WHOLE_FACTOR_TOLERANCE = 0.1
+"""How near a whole factor (2, 3, ... or its inverse) a clock's rate over the stream's stated
+frame rate must be for the rate check to name it: frame numbers counted at another rate."""
+
+
+def whole_factor(clock: dict, stream: int | str) -> str:
+    """Where a stream's clock (``core.sync.sync_report``, with ``implied_fps`` and ``fps``)
+    runs at a whole factor (or its inverse) of the stated frame rate: the factor and the
+    ``--fps`` the clock implies, for a warning; else empty."""
+    factor = clock["implied_fps"] / clock["fps"]
+    whole = round(max(factor, 1.0 / factor))
+    if whole < 2 or abs(max(factor, 1.0 / factor) / whole - 1.0) > WHOLE_FACTOR_TOLERANCE:
+        return ""
+    meant, about = ((clock["fps"] * whole, f"{whole}") if factor > 1 else
+                    (clock["fps"] / whole, f"1/{whole}"))
+    return (f"its clock runs {factor:.3g} x the rate --fps gives it (about {about}), as when "
+            "its frame numbers count frames at another rate than the images': "
+            f"--fps {stream}={meant:g} if they count frames at that rate")
+
+
+def frame_steps(capture: Capture) -> dict[int, int]:
+    """Per stream of three or more frames: the largest step dividing every step between its
+    frame numbers (4 when a video's frames are named at its rate and every 4th is kept)."""
+    steps = {}
+    for s in np.unique(capture.stream_ids):
+        frames = np.unique(capture.frame[capture.stream_ids == s])
+        if frames.size >= 3:
+            steps[int(s)] = int(np.gcd.reduce(np.diff(frames)))
+    return steps
+
+
+def warn_stepped_frames(capture: Capture, fps: Fps) -> None:
+    """Warn where streams of a known frame rate number their frames in steps of k > 1: the
+    rate (``--fps``) counts frame numbers, so the images are k times rarer; a rate meant as the
+    images' own makes every time k times too long."""
+    groups: dict[tuple[int, float], list[int]] = {}
+    for s, k in frame_steps(capture).items():
+        rate = stream_fps(fps, s)
+        if k > 1 and rate is not None:
+            groups.setdefault((k, rate), []).append(s)
+    for (k, rate), streams in groups.items():
+        every = len(streams) == np.unique(capture.stream[capture.stream >= 0]).size
+        fix = f"{rate * k:g}" if every else " ".join(f"{s}={rate * k:g}" for s in streams)
+        logger.warning("stream(s) %s: the frame numbers in the image names step by %d, so at "
+                       "%g fps (the rate of those numbers, --fps) the images are %g per second; "
+                       "if %g fps is the images' own rate, the numbers run at %g: give --fps %s",
+                       ", ".join(map(str, streams)), k, rate, rate / k, rate, rate * k, fix)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -256,13 +314,22 @@ def write_wide_csv(path: Path, capture: Capture, result: Result, time: np.ndarra
     return Path(path)
 
 
+def _seconds_per_frame(events: list[dict], fps: Fps) -> float | None:
+    """The frame rate every event's reference stream shares in ``fps``, else None (a video
+    of unknown rate, an event without one, or references at different rates)."""
+    rates = {stream_fps(fps, e["reference_stream"]) for e in events}
+    return rates.pop() if len(rates) == 1 and None not in rates else None
+
+
 def write_mocap(folder: Path, capture: Capture, result: Result, names: list[str], *,
-                export_rate: float | None = None) -> tuple[np.ndarray, dict]:
+                export_rate: float | None = None, fps: Fps = None) -> tuple[np.ndarray, dict]:
     """``trajectories.trc``, ``trajectories.c3d`` and ``trajectories_wide.csv`` in ``folder``.
 
     ``capture`` as from ``columns.solved_capture``, ``names`` (P',) the columns' marker names;
-    ``export_rate``: grid samples per reference frame (default: the fastest stream's rate).
-    Returns every image's time (N,) and the report's ``mocap_export`` entry.
+    ``export_rate``: grid samples per reference frame (default: the fastest stream's rate);
+    ``fps``: the streams' frame rates (``core.sync``), the files in seconds and Hz when every
+    event's reference stream has the same one (module docstring). Returns every image's time
+    (N,) in reference frames and the report's ``mocap_export`` entry.
     """
     if export_rate is not None and not (np.isfinite(export_rate) and export_rate > 0):
         raise InputError(f"option --export-rate: must be a positive number, got {export_rate}")
@@ -273,20 +340,27 @@ def write_mocap(folder: Path, capture: Capture, result: Result, names: list[str]
         raise InputError(f"option --export-rate: {rate:g} samples per frame over "
                          f"{np.ptp(timeline.time):g} frames make {samples} samples of "
                          f"{result.X.shape[1]} points, more than {MAX_POINT_SAMPLES}; lower it")
+    hz = _seconds_per_frame(timeline.events, fps)
+    per_unit = 1.0 if hz is None else hz  # frames per unit of the files' time
+    time = timeline.time / per_unit
     label = {summary["event"]: k for k, summary in enumerate(timeline.events)}
-    grid, Y = resample_uniform(timeline.time, result.X, capture.visible, rate,
+    grid, Y = resample_uniform(time, result.X, capture.visible, rate * per_unit,
                                segments=np.array([label[int(e)] for e in result.events]),
-                               max_gap=np.array([s["max_gap"] for s in timeline.events]))
+                               max_gap=np.array([s["max_gap"] for s in timeline.events]) / per_unit)
     Y_mm = Y * MM_PER_UNIT
     bases = sorted({s["base"] for s in timeline.events})
-    note = (f"time in frames of each event's reference stream (base: {', '.join(bases)}); "
+    unit = "frame" if hz is None else "s"
+    when = ("frames of each event's reference stream" if hz is None else
+            f"seconds (frames of each event's reference stream at {hz:g} fps)")
+    note = (f"time in {when} (base: {', '.join(bases)}); "
             f"mm from model units as metres; model frame as is (not y-up)")
-    write_trc(folder / "trajectories.trc", grid, Y_mm, names, rate)
-    write_c3d(folder / "trajectories.c3d", grid, Y_mm, names, rate, unit=timeline.unit,
+    write_trc(folder / "trajectories.trc", grid, Y_mm, names, rate * per_unit)
+    write_c3d(folder / "trajectories.c3d", grid, Y_mm, names, rate * per_unit, unit=unit,
               note=note)
-    write_wide_csv(folder / "trajectories_wide.csv", capture, result, timeline.time, names)
-    report = {"time_unit": timeline.unit, "rate": rate, "samples": int(grid.size),
-              "start_time": float(grid[0]), "units": "mm", "mm_per_model_unit": MM_PER_UNIT,
+    write_wide_csv(folder / "trajectories_wide.csv", capture, result, time, names)
+    report = {"time_unit": unit, "rate": rate * per_unit, "rate_per_frame": rate, "fps": hz,
+              "samples": int(grid.size), "start_time": float(grid[0]), "units": "mm",
+              "mm_per_model_unit": MM_PER_UNIT,
               "empty_fraction": float(np.isnan(Y[..., 0]).mean()), "note": note,
               "events": timeline.events}
     return timeline.time, report

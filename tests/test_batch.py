@@ -186,13 +186,14 @@ def test_outputs_and_names_are_checked_first(captures, tmp_path, capsys) -> None
     occupied = tmp_path / "occupied"
     occupied.mkdir()
     (occupied / "notes.txt").write_text("mine")
-    code, err = run_cli("batch", files[0], "--out", occupied, capsys=capsys)
-    assert code == 2 and "exists (use --overwrite" in error_line(err)
-    code, err = run_cli("batch", files[0], "--out", occupied, "--overwrite", capsys=capsys)
-    assert code == 2 and "not written by dloe-sfm" in error_line(err)
-    (occupied / MARKER).write_text("dloe-sfm\n")  # e.g. a reconstruct output: not a batch's
-    code, err = run_cli("batch", files[0], "--out", occupied, "--overwrite", capsys=capsys)
-    assert code == 2 and "not written by dloe-sfm batch" in error_line(err)
+    for mark in ("", MARKER):  # a folder of the user's, a reconstruct output: not a batch's
+        if mark:
+            (occupied / mark).write_text("dloe-sfm\n")
+        for overwrite in ((), ("--overwrite",)):  # the first message says what to do
+            code, err = run_cli("batch", files[0], "--out", occupied, *overwrite, capsys=capsys)
+            assert code == 2 and error_line(err).endswith(
+                f"{occupied}: not written by dloe-sfm (no batch.json file in it), never "
+                "replaced; choose another output path"), err
     assert (occupied / "notes.txt").read_text() == "mine"
     code, err = run_cli("batch", files[0], "--out", files[0].parent / "x", "--set", "bad",
                         capsys=capsys)

@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -193,3 +194,30 @@ def test_version_logging_and_progress_follow_the_flags(capture_file, tmp_path):
             "print([type(x).__name__ for x in h])")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.stdout.strip() == "['NullHandler']", r.stdout + r.stderr
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["solve", "CAPTURE", "--out", "OUT", "--overwrit"],  # an abbreviation is not taken
+     "dloe-sfm solve: error: unrecognized option --overwrit: did you mean --overwrite?"),
+    (["--verbos", "solve", "CAPTURE", "--out", "OUT"],
+     "dloe-sfm: error: unrecognized option --verbos: did you mean --verbose?"),
+    (["solve", "CAPTURE", "--out", "OUT", "--zzz"],
+     "dloe-sfm solve: error: unrecognized option --zzz: see dloe-sfm solve --help"),
+])
+def test_an_abbreviated_or_unknown_option_is_refused_naming_the_one_meant(
+        capture_file, tmp_path, args, message):
+    named = {"CAPTURE": capture_file, "OUT": tmp_path / "r.npz"}
+    r = dloe(*(named.get(a, a) for a in args))
+    assert r.returncode == 2 and r.stderr.splitlines()[-1] == message, r.stderr
+    assert not (tmp_path / "r.npz").exists()
+
+
+def test_no_parser_takes_abbreviations():
+    from dloe_sfm.synth.mocap import pipeline_parser
+
+    assert pipeline_parser(__file__, None, "x").allow_abbrev is False
+    repo = Path(__file__).resolve().parents[1]
+    for script in sorted(repo.glob("pipelines/*/pipeline.py")):
+        text = script.read_text()
+        made = text.count("argparse.ArgumentParser(")
+        assert made == text.count("argparse.ArgumentParser(allow_abbrev=False"), script

@@ -131,10 +131,9 @@ def test_existing_out_dir_is_refused_unless_overwrite(tmp_path) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("user data")
-    with pytest.raises(InputError, match="exists"):
-        export_outputs(out, capture, result)
-    with pytest.raises(InputError, match="not written by dloe-sfm"):
-        export_outputs(out, capture, result, overwrite=True)
+    for overwrite in (False, True):  # never replaced: another path is asked for
+        with pytest.raises(InputError, match="not written by dloe-sfm .*choose another output"):
+            export_outputs(out, capture, result, overwrite=overwrite)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     (out / "keep.txt").unlink()
     export_outputs(out, capture, result, overwrite=True, plots=False)  # an empty folder

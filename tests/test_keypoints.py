@@ -15,6 +15,7 @@ from scenes import openpose_file
 from dloe_sfm import colmap
 from dloe_sfm.errors import InputError
 from dloe_sfm.keypoints import FORMATS, LAYOUTS, load_layout, match_names, read_keypoints
+from dloe_sfm.keypoints.detect import KINDS, looks_like
 from dloe_sfm.observations import assign_streams, build_capture
 
 P = 25
@@ -265,6 +266,52 @@ def test_bad_csv_lines(tmp_path, text, message) -> None:
     (tmp_path / "kp.csv").write_text(text)
     with pytest.raises(InputError, match=message):
         read_keypoints("csv", tmp_path / "kp.csv", layout="BODY_25")
+
+
+def one_of_each_format(folder: Path) -> dict[str, Path]:
+    """A small input of every keypoint format (two of OpenPose's and of MMPose's), by path ->
+    the format it is."""
+    rng = np.random.default_rng(1)
+    person = random_people(rng, 1, 17)[0]
+    xy, scores = np.nan_to_num(person[:, :2]).tolist(), person[:, 2].tolist()
+    openpose_file(folder / "op" / "f0_keypoints.json", person[None])
+    for cam in (1, 2):
+        (folder / "p2s" / f"cam{cam:02d}_json").mkdir(parents=True)
+        (folder / "p2s" / f"cam{cam:02d}_json" / "cam.0000.json").write_text('{"people": []}')
+    openpose_file(folder / "p2s" / "cam02_json" / "cam.0001.json", person[None])
+    (folder / "coco.json").write_text(json.dumps({
+        "images": [{"id": 1, "file_name": "a.jpg"}],
+        "annotations": [{"image_id": 1, "keypoints": np.c_[xy, scores].ravel().tolist()}],
+        "categories": [{"id": 1, "keypoints": LAYOUTS["COCO_17"].point_names}]}))
+    (folder / "mm").mkdir()
+    (folder / "mm" / "a.json").write_text(json.dumps([{"keypoints": xy,
+                                                         "keypoint_scores": scores}]))
+    (folder / "mm_video.json").write_text(json.dumps([{"frame_id": 0, "instances": [
+        {"keypoints": xy, "keypoint_scores": scores}]}]))
+    (folder / "kp.csv").write_text("image,point_id,x,y\na.jpg,0,1,2\n")
+    (folder / "images").mkdir()
+    marker = cv2.aruco.generateImageMarker(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 3, 60)
+    cv2.imwrite(str(folder / "images" / "a.png"), np.pad(marker, 20, constant_values=255))
+    return {folder / "op": "openpose", folder / "p2s": "openpose", folder / "coco.json": "coco",
+            folder / "mm": "mmpose", folder / "mm_video.json": "mmpose",
+            folder / "kp.csv": "csv", folder / "images": "aruco"}
+
+
+def test_a_file_of_another_format_names_the_format_it_looks_like(tmp_path) -> None:
+    inputs = one_of_each_format(tmp_path)
+    for path, fmt in inputs.items():
+        assert looks_like(path) == fmt, path
+        read_keypoints(fmt, path)
+        for other in set(FORMATS) - {fmt}:
+            with pytest.raises(InputError) as e:
+                read_keypoints(other, path)
+            assert str(e.value) == (f"{path}: looks like {KINDS[fmt]}, not {other} keypoints: "
+                                    f"use --format {fmt}"), (path, other)
+    (tmp_path / "notes.txt").write_text("a,b\n")
+    assert looks_like(tmp_path / "notes.txt") is None
+    with pytest.raises(InputError, match=r"notes\.txt: malformed JSON at line 1"):
+        read_keypoints("openpose", tmp_path / "notes.txt")
 
 
 def test_unknown_format_option_and_path(tmp_path) -> None:

@@ -190,6 +190,53 @@ def test_openpose_layout_by_count(tmp_path, count, name) -> None:
     np.testing.assert_allclose(kp.points["cam01.0001"], files[1])
 
 
+# six real OpenPose BODY_25B files of the Pose2Sim trial (tests/data/README.md)
+BODY_25B_FILES = Path(__file__).parent / "data" / "pose2sim_body_25b"
+
+
+def as_body_25(people_25b: np.ndarray) -> np.ndarray:
+    """(M, 25, 3) BODY_25B detections in BODY_25's order, its Neck and MidHip the midpoints of
+    the shoulders and hips (as OpenPose trains them), missing (0, 0, 0) where one is."""
+    names_b = LAYOUTS["BODY_25B"].point_names
+    out = np.zeros_like(people_25b)
+    for k, name in enumerate(LAYOUTS["BODY_25"].point_names):
+        pair = {"Neck": ("LShoulder", "RShoulder"), "MidHip": ("LHip", "RHip")}.get(name)
+        out[:, k] = (people_25b[:, names_b.index(name)] if pair is None else
+                     people_25b[:, [names_b.index(n) for n in pair]].mean(axis=1))
+    return np.nan_to_num(out, nan=0.0)
+
+
+def test_body_25b_is_told_from_body_25_by_the_data(tmp_path, dloe_logs) -> None:
+    kp = read_keypoints("openpose", BODY_25B_FILES)
+    assert kp.layout is LAYOUTS["BODY_25B"]
+    assert [m for m in dloe_logs if "read as BODY_25B, not BODY_25, from the data" in m
+            and "--layout NAME" in m], dloe_logs
+    openpose_folder(tmp_path / "b25", [as_body_25(p) for p in kp.points.values()])
+    dloe_logs.clear()
+    assert read_keypoints("openpose", tmp_path / "b25").layout is LAYOUTS["BODY_25"]
+    assert [m for m in dloe_logs if "read as BODY_25, not BODY_25B, from the data" in m]
+    dloe_logs.clear()  # a layout given is taken as it is, nothing guessed
+    assert read_keypoints("openpose", BODY_25B_FILES, layout="body_25").layout.name == "BODY_25"
+    assert not [m for m in dloe_logs if "joints per detection" in m], dloe_logs
+    # random points are neither: BODY_25, OpenPose's default, with a warning saying how to choose
+    openpose_folder(tmp_path / "random", [people(np.random.default_rng(k), 2, 25)
+                                          for k in range(4)])
+    assert read_keypoints("openpose", tmp_path / "random").layout is LAYOUTS["BODY_25"]
+    assert [m for m in dloe_logs if "BODY_25 or BODY_25B (Pose2Sim's default): the data does "
+            "not tell" in m and "--layout BODY_25B" in m], dloe_logs
+
+
+def test_a_layout_by_joint_count_is_logged_with_the_others_of_that_count(tmp_path, dloe_logs
+                                                                         ) -> None:
+    rng = np.random.default_rng(0)
+    for count, said in ((18, "read as COCO_18 (other known layouts of 18 joints: none;"),
+                        (17, "no layout taken: points p0, p1, ... (known layouts of 17 joints: "
+                             "COCO_17; --layout NAME|FILE.json to choose)")):
+        openpose_folder(tmp_path / str(count), [people(rng, 1, count)])
+        read_keypoints("openpose", tmp_path / str(count))
+        assert [m for m in dloe_logs if said in m], dloe_logs
+
+
 def test_wholebody_133_points_keep_body_and_feet(tmp_path, dloe_logs) -> None:
     rng = np.random.default_rng(1)
     files = [people(rng, 2, 133), people(rng, 3, 133)]

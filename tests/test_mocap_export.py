@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import ezc3d
@@ -17,7 +18,13 @@ from dloe_sfm import Capture, InputError, Result, cli, colmap
 from dloe_sfm.export import export_outputs, write_outputs
 from dloe_sfm.keypoints import Layout
 from dloe_sfm.keypoints.base import LAYOUTS
-from dloe_sfm.mocap_export import image_times, resample_uniform, write_c3d, write_trc
+from dloe_sfm.mocap_export import (
+    image_times,
+    resample_uniform,
+    whole_factor,
+    write_c3d,
+    write_trc,
+)
 
 NAMES = ["head", "hip", "foot"]
 VELOCITY = np.array([[0.3, -0.2, 0.1], [0.0, 0.5, 0.0], [-0.4, 0.0, 0.25]])  # mm per unit
@@ -263,6 +270,66 @@ def test_export_rate_is_checked_and_used(tmp_path) -> None:
     report = write_outputs(tmp_path / "ok", capture, result, layout=TOY_LAYOUT, export_rate=2.5)
     trc = read_trc(tmp_path / "ok" / "trajectories.trc")
     assert float(trc["header"]["DataRate"]) == report["mocap_export"]["rate"] == 2.5
+
+
+def test_known_frame_rates_put_the_exports_in_seconds_and_hz(tmp_path) -> None:
+    """With the reference stream's 60 fps known, the TRC / C3D / wide CSV are those in frames
+    with time over 60 and the rate times 60 (Hz); with its rate unknown they stay in frames."""
+    capture, result, _ = toy_capture()
+    result = replace(result, order=np.arange(capture.num_images))  # stream 0 the reference
+    reports, trcs = {}, {}
+    for name, fps in (("frames", None), ("seconds", 60.0), ("unknown", {1: 60.0, 2: 60.0})):
+        reports[name] = export_outputs(tmp_path / name, capture, result, layout=TOY_LAYOUT,
+                                       plots=False, fps=fps)["mocap_export"]
+        trcs[name] = check_trc_and_c3d(tmp_path / name / "trajectories.trc",
+                                       tmp_path / name / "trajectories.c3d",
+                                       TOY_LAYOUT.point_names)
+    assert all(e["reference_stream"] == 0 for e in reports["seconds"]["events"])
+    frames, seconds = trcs["frames"], trcs["seconds"]
+    assert float(seconds["header"]["DataRate"]) == 60.0 * float(frames["header"]["DataRate"])
+    assert float(seconds["header"]["DataRate"]) == reports["seconds"]["rate"] == 60.0
+    np.testing.assert_allclose(seconds["time"], frames["time"] / 60.0, rtol=1e-12)
+    np.testing.assert_array_equal(seconds["xyz"], frames["xyz"])
+    assert read_c3d(tmp_path / "seconds" / "trajectories.c3d")["unit"] == "s"
+    assert reports["seconds"]["time_unit"] == "s" and reports["seconds"]["fps"] == 60.0
+    with open(tmp_path / "seconds" / "trajectories_wide.csv", newline="") as f:
+        wide = [float(r["time"]) for r in csv.DictReader(f)]
+    with open(tmp_path / "seconds" / "sequence.csv", newline="") as f:
+        assert wide == [float(r["time"]) for r in csv.DictReader(f)]  # seconds in both
+    assert trcs["unknown"]["header"] == frames["header"]
+    assert reports["unknown"]["time_unit"] == "frame" and reports["unknown"]["fps"] is None
+
+
+def test_frame_numbers_in_steps_warn_what_fps_means(tmp_path, log_lines) -> None:
+    """Frames named at a video's rate with every 4th kept: --fps counts the numbers, and the
+    warning says what to give if the rate was meant as the images'."""
+    capture, result, _ = toy_capture()
+    result = replace(result, order=np.arange(capture.num_images))
+    export_outputs(tmp_path / "one", capture, result, layout=TOY_LAYOUT, plots=False, fps=60.0)
+    assert not [line for line in log_lines if "step by" in line]
+    stepped = replace(capture, frame=4 * capture.frame)
+    report = export_outputs(tmp_path / "four", stepped, result, layout=TOY_LAYOUT,
+                            plots=False, fps=60.0)
+    assert [line for line in log_lines if line.startswith(
+        "stream(s) 0, 1, 2: the frame numbers in the image names step by 4, so at 60 fps (the "
+        "rate of those numbers, --fps) the images are 15 per second; if 60 fps is the images' "
+        "own rate, the numbers run at 240: give --fps 240")], log_lines
+    assert report["mocap_export"]["fps"] == 60.0  # times still count the numbers at 60
+    stepped = replace(capture, frame=np.where(capture.stream == 1, 4, 1) * capture.frame)
+    export_outputs(tmp_path / "one_stream", stepped, result, layout=TOY_LAYOUT, plots=False,
+                   fps={0: 60.0, 1: 15.0, 2: 60.0})
+    assert any(line.startswith("stream(s) 1: the frame numbers in the image names step by 4")
+               and line.endswith("give --fps 1=60") for line in log_lines), log_lines
+
+
+def test_a_clock_a_whole_factor_off_its_rate_names_the_fps_it_implies() -> None:
+    clock = {"implied_fps": 59.2, "fps": 15.0}
+    assert whole_factor(clock, 2).endswith("(about 4), as when its frame numbers count frames "
+                                           "at another rate than the images': --fps 2=60 if "
+                                           "they count frames at that rate")
+    assert "(about 1/4)" in whole_factor({"implied_fps": 15.1, "fps": 60.0}, 0)
+    assert whole_factor({"implied_fps": 29.0, "fps": 25.0}, 0) == ""  # a rate off, no factor
+    assert whole_factor({"implied_fps": 37.5, "fps": 15.0}, 0) == ""  # 2.5: no whole factor
 
 
 def test_reconstruct_output_folder_has_the_exports(tmp_path, monkeypatch) -> None:

@@ -209,11 +209,26 @@ def test_a_bad_set_names_the_argument_the_option_and_its_range(item, message):
     assert str(e.value) == f"--set {item}: option '{key}' must be {message}"
 
 
+@pytest.mark.parametrize(("item", "meant"), [
+    ("noise_pix=2", "noise_px"), ("lamda1=3", "lambda1"), ("max_iteration=5", "max_iterations"),
+])
+def test_a_misspelt_option_is_answered_with_the_one_meant(tmp_path, item, meant):
+    key = item.split("=")[0]
+    with pytest.raises(InputError) as e:
+        load_options(None, [item])
+    assert str(e.value) == f"--set {item}: unknown option '{key}': did you mean '{meant}'?"
+    cfg = tmp_path / "solver.toml"
+    cfg.write_text(f"[solver]\n{key} = {item.split('=')[1]}\n")
+    with pytest.raises(InputError) as e:
+        load_options(cfg)
+    assert str(e.value) == f"{cfg} [solver]: unknown option '{key}': did you mean '{meant}'?"
+
+
 def test_set_syntax_and_unknown_keys():
     with pytest.raises(InputError, match=r"^--set omega: expected key=value$"):
         load_options(None, ["omega"])
-    with pytest.raises(InputError, match=r"^--set lamda1=3: unknown option 'lamda1' \(known: "):
-        load_options(None, ["lamda1=3"])
+    with pytest.raises(InputError, match=r"^--set zebra=3: unknown option 'zebra' \(known: "):
+        load_options(None, ["zebra=3"])
     with pytest.raises(InputError) as e:  # an echoed newline stays escaped: one line
         load_options(None, ["omega=1\nall good"])
     assert_one_line(e.value)

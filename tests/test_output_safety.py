@@ -78,7 +78,8 @@ def test_out_under_a_file(ws, tmp_path, capsys) -> None:
     code, err = run(*reconstruct(ws, ws / "README.md" / "out"), capsys=capsys)
     assert code == 2
     assert error_line(err).endswith(f"{ws / 'README.md' / 'out'}: cannot create it, "
-                                    f"{ws / 'README.md'} is not a folder")
+                                    f"{ws / 'README.md'} is not a folder; choose another "
+                                    "output path")
     assert snapshot(ws) == before
 
 
@@ -104,16 +105,22 @@ def test_unwritable_location(ws, tmp_path, capsys) -> None:
     assert snapshot(ws) == before and not (locked / "new").exists()
 
 
-def test_existing_out_needs_overwrite_and_our_marker(ws, tmp_path, capsys) -> None:
+def test_a_folder_of_the_users_own_is_refused_asking_for_another_out(ws, tmp_path, capsys
+                                                                     ) -> None:
     out = tmp_path / "out"
     out.mkdir()
     (out / "thesis.tex").write_text("years of work")
     before = snapshot(tmp_path)
-    code, err = run(*reconstruct(ws, out), capsys=capsys)
-    assert code == 2 and f"{out}: output folder exists (use --overwrite" in error_line(err)
-    code, err = run(*reconstruct(ws, out, "--overwrite"), capsys=capsys)
-    assert code == 2 and f"{out}: not written by dloe-sfm (no {MARKER} file" in error_line(err)
+    for overwrite in ((), ("--overwrite",)):  # the first message already names the way out
+        code, err = run(*reconstruct(ws, out, *overwrite), capsys=capsys)
+        assert code == 2 and error_line(err).endswith(
+            f"{out}: not written by dloe-sfm (no {MARKER} file in it), never replaced; "
+            "choose another output path"), err
     assert snapshot(tmp_path) == before
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, err = run(*reconstruct(ws, empty), capsys=capsys)
+    assert code == 2 and f"{empty}: output folder exists (use --overwrite" in error_line(err)
 
 
 def test_overwrite_replaces_our_own_output_and_removes_stale_temps(ws, tmp_path, capsys) -> None:
@@ -177,10 +184,11 @@ def test_solve_replaces_only_a_result_and_only_with_overwrite(capture, tmp_path,
     notes, result = tmp_path / "notes.npz", tmp_path / "result.npz"
     shutil.copy(capture, notes)  # an npz, but not a result
     before = snapshot(tmp_path)
-    code, err = run("solve", capture, "--out", notes, capsys=capsys)
-    assert code == 2 and f"{notes}: output file exists (use --overwrite" in error_line(err)
-    code, err = run("solve", capture, "--out", notes, "--overwrite", capsys=capsys)
-    assert code == 2 and f"{notes}: not a dloe-sfm result file" in error_line(err)
+    for overwrite in ((), ("--overwrite",)):
+        code, err = run("solve", capture, "--out", notes, *overwrite, capsys=capsys)
+        assert code == 2 and error_line(err).endswith(
+            f"{notes}: exists and is not a dloe-sfm result file, never replaced; choose "
+            "another output path"), err
     assert snapshot(tmp_path) == before
 
     assert run("solve", capture, "--out", result, *FAST, capsys=capsys)[0] == 0

@@ -208,7 +208,8 @@ def test_existing_out_dir_is_refused_by_the_cli(scene, tmp_path) -> None:
         capture_output=True, text=True, timeout=120,
     )
     assert proc.returncode == 2
-    assert "exists" in one_error_line(proc.stderr)
+    assert one_error_line(proc.stderr).endswith(
+        "never replaced; choose another output path"), proc.stderr
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
 
 

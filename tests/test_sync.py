@@ -169,10 +169,13 @@ def test_sync_command_prints_and_round_trips_json(solved, tmp_path, capsys):
     assert json.loads(target.read_text())["reference_fps"] == 60.0
     other = tmp_path / "other.json"
     other.write_text("{}")
+    capsys.readouterr()
     for path in (other, out / "report.json"):
-        with pytest.raises(SystemExit) as e:
-            cli_main(["sync", str(out), "--json", str(path), "--overwrite"])
-        assert e.value.code == 2
+        for overwrite in ([], ["--overwrite"]):  # never replaced: another file is asked for
+            with pytest.raises(SystemExit) as e:
+                cli_main(["sync", str(out), "--json", str(path), *overwrite])
+            assert e.value.code == 2
+            assert "; choose another" in capsys.readouterr().err
     assert other.read_text() == "{}"
 
 
@@ -205,6 +208,24 @@ def test_clocks_that_miss_the_known_frame_rates_are_flagged(solved, tmp_path, lo
     assert cli_main(["sync", str(tmp_path / "out"), "--fps", *[f"{k}={r}" for k, r in
                                                                 enumerate(RATES)]]) == 0
     assert "!" not in capsys.readouterr().out
+
+
+def test_a_rate_a_whole_factor_off_is_named_with_the_fps_to_give(solved, tmp_path, log_lines,
+                                                                 capsys):
+    """Told a stream runs at a quarter of its rate (its images' rate, where its frame numbers
+    count every 4th frame), the warning and ``dloe-sfm sync`` name the factor and the --fps the
+    clock implies."""
+    capture, _, _, report, result = solved
+    ref = report["sync"]["events"][0]["reference_stream"]
+    s = next(k for k in range(len(RATES)) if k != ref)
+    told = {k: r / 4 if k == s else r for k, r in enumerate(RATES)}
+    export_outputs(tmp_path / "out", capture, result, plots=False, fps=told)
+    hint = "(about 4), as when its frame numbers count frames at another rate than the images'"
+    fix = f"--fps {s}={RATES[s]:g} if they count frames at that rate"
+    assert [line for line in log_lines if f"stream {s}: its clock runs at" in line
+            and hint in line and line.endswith(fix)], log_lines
+    assert cli_main(["sync", str(tmp_path / "out")]) == 0
+    assert f"! stream {s}: its clock runs" in capsys.readouterr().out
 
 
 def test_dropped_clocks_time_the_event_and_widen_its_offsets(solved, tmp_path, log_lines,

@@ -181,7 +181,14 @@ def test_view_save_gif(out, tmp_path, capsys) -> None:
     with Image.open(gif) as im:
         assert im.n_frames == N and im.info["duration"] == 200
     code, err = run_cli(["view", str(out), "--save-gif", str(gif)], capsys)
-    assert code == 2 and f"{gif}: output file exists" in err
+    assert code == 2 and f"{gif}: output file exists (use --overwrite" in err
+    notes = tmp_path / "notes.gif"
+    notes.write_text("not a picture")
+    for overwrite in ([], ["--overwrite"]):
+        code, err = run_cli(["view", str(out), "--save-gif", str(notes), *overwrite], capsys)
+        assert code == 2 and f"{notes}: exists and is not a .gif image, never replaced; " \
+            "choose another --save-gif file" in err, err
+    assert notes.read_text() == "not a picture"
     code, err = run_cli(["view", str(out), "--save-gif", str(tmp_path / "v.mp4")], capsys)
     assert code == 2 and ".gif" in err
 

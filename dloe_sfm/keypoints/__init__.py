@@ -18,6 +18,7 @@ from .base import (
     rename_to_workspace,
     shown,
 )
+from .detect import KINDS, looks_like
 
 if TYPE_CHECKING:
     from ..colmap import Workspace
@@ -63,5 +64,12 @@ def read_keypoints(
     path = Path(path)
     if not path.exists():
         raise InputError(f"{shown(path)}: no such keypoint file or folder")
-    keypoints = reader(path, **options)
+    try:
+        keypoints = reader(path, **options)
+    except InputError:
+        guess = looks_like(path)
+        if guess is None or guess == fmt.lower():
+            raise
+        raise InputError(f"{shown(path)}: looks like {KINDS[guess]}, not {fmt} keypoints: "
+                         f"use --format {guess}") from None
     return rename_to_workspace(keypoints, workspace) if workspace is not None else keypoints

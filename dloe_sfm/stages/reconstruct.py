@@ -67,7 +67,9 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     ``export_rate``: samples per reference-stream frame of ``trajectories.trc`` / ``.c3d``
     (``mocap_export``; default the fastest stream's rate).
     ``fps``: the streams' frame rates, one for all or per stream id (``core.sync``), replacing
-    the capture's own: times in seconds, offsets in ms.
+    the capture's own: the rates of the frame numbers in the image names (a video's, also when
+    every k-th frame is kept; ``mocap_export.warn_stepped_frames``); times in seconds, offsets
+    in ms, the TRC / C3D in Hz.
     ``out`` is checked first (``io.check_output``: never an input, an existing folder only
     replaced with ``overwrite`` and when dloe-sfm wrote it, writable) and written atomically:
     on any error nothing is left at ``out``. Returns ``out``.
@@ -175,7 +177,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", dest="plots", action="store_false", help="skip plots/")
     parser.add_argument("--export-rate", type=_positive_rate, metavar="RATE",
                         help="samples per reference-stream frame of trajectories.trc / .c3d "
-                             "(default: the fastest stream's rate)")
+                             "(default: the fastest stream's rate); with --fps the files' rate "
+                             "is RATE x fps, in Hz")
     add_fps_option(parser, solves=True)
     parser.add_argument("--progress", action="store_true",
                         help="show progress bars (default: only on a terminal)")

@@ -20,6 +20,7 @@ from ..core.sync import (
 )
 from ..errors import InputError
 from ..io import atomic_path, check_not_input
+from ..mocap_export import whole_factor
 
 JSON_KIND = "dloe-sfm sync"
 """The ``kind`` of the JSON file written (an earlier one may be replaced with ``--overwrite``)."""
@@ -70,10 +71,12 @@ def positive_rate(text: str) -> float:
 def add_fps_option(parser: argparse.ArgumentParser, *, solves: bool = False) -> None:
     """``--fps`` (``parse_fps``) on ``parser``; ``solves``: the command solves with it."""
     parser.add_argument("--fps", nargs="+", metavar="FPS|STREAM=FPS",
-                        help="frame rate of every stream, or per stream (e.g. 0=30 1=29.97): "
-                             "times in seconds and offsets in ms"
-                             + ("; the clocks keep the rates' ratios once the detections' "
-                                "offsets are out" if solves else ""))
+                        help="frame rate of every stream, or per stream (e.g. 0=30 1=29.97), "
+                             "as the frame numbers in the image names count: a video's own rate "
+                             "even when only every k-th frame is kept; times in seconds and "
+                             "offsets in ms"
+                             + (", trajectories.trc / .c3d in Hz; the clocks keep the rates' "
+                                "ratios once the detections' offsets are out" if solves else ""))
 
 
 def read_report(folder: Path) -> dict:
@@ -182,6 +185,9 @@ def format_table(table: dict) -> str:
                      f"from the known frame rates, {RATE_CHECK_DRIFT:g} frame or more over the "
                      "stream: the fit may have settled on wrong rates, its offset and times are "
                      "not to be trusted")
+    lines += [f"! stream {name}: {whole_factor(c, name)}" for e in table["events"]
+              for name, c in e["streams"].items()
+              if c.get("fps_consistent") is False and whole_factor(c, name)]
     return "\n".join(lines)
 
 
@@ -191,16 +197,17 @@ def write_json(path: Path, table: dict, *, inputs: list[Path], overwrite: bool) 
     path = Path(path)
     check_not_input(path, inputs, "input")
     if path.is_dir():
-        raise InputError(f"{path}: exists and is a folder")
+        raise InputError(f"{path}: exists and is a folder; choose another --json file")
     if path.exists():
-        if not overwrite:
-            raise InputError(f"{path}: output file exists (use --overwrite to replace it)")
         try:
             kind = json.loads(path.read_text(encoding="utf-8")).get("kind")
         except (OSError, UnicodeDecodeError, ValueError, AttributeError):
             kind = None
         if kind != JSON_KIND:
-            raise InputError(f"{path}: not a dloe-sfm sync file; refusing to replace it")
+            raise InputError(f"{path}: exists and is not a dloe-sfm sync file, never replaced; "
+                             "choose another --json file")
+        if not overwrite:
+            raise InputError(f"{path}: output file exists (use --overwrite to replace it)")
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(table, indent=2) + "\n")
     return path

@@ -135,10 +135,13 @@ def _output_file(path: Path, option: str, magic: bytes, *, overwrite: bool,
     suffix = {b"GIF8": ".gif", b"\x89PNG": ".png"}[magic]
     if path.suffix.lower() != suffix:
         raise InputError(f"{path}: {option} needs a file name ending in {suffix}")
-    if overwrite and path.is_file():
+    if path.is_file():
         with open(path, "rb") as f:
             if f.read(len(magic)) != magic:
-                raise InputError(f"{path}: not a {suffix} image; refusing to replace it")
+                raise InputError(f"{path}: exists and is not a {suffix} image, never replaced; "
+                                 f"choose another {option} file")
+        if not overwrite:
+            raise InputError(f"{path}: output file exists (use --overwrite to replace it)")
         return path
     return check_output(path, protected=protected, kind="file")
 

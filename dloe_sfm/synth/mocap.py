@@ -91,7 +91,7 @@ def pipeline_parser(script: str, doc: str | None, name: str) -> argparse.Argumen
     ``script``) start from: ``doc`` as help, ``--data`` (default the shared CMU clips beside the
     repository, ``../shared/data/mocap``) and ``--out`` (default ``outputs/<name>`` in it)."""
     repo = Path(script).resolve().parents[2]
-    parser = argparse.ArgumentParser(description=doc,
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=doc,
                                      formatter_class=argparse.RawTextHelpFormatter)
     parser.add_argument("--data", type=Path, default=repo.parent / "shared" / "data" / "mocap",
                         help="folder of mocap .npz clips")

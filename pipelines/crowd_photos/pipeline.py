@@ -52,7 +52,7 @@ def run(images: Path, keypoints: Path | None, fmt: str, out: Path, *,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--images", type=Path, required=True, help="folder of images")
     parser.add_argument("--keypoints", type=Path,
                         help="keypoint file or folder (aruco: default, the images)")

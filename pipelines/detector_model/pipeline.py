@@ -276,7 +276,7 @@ def run(data: Path, out: Path, model_path: Path = MODEL, *, overwrite: bool = Fa
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="pose2sim_single_trial folder")
     parser.add_argument("--out", type=Path, required=True, help="output folder (plots, fit)")
     parser.add_argument("--model", type=Path, default=MODEL, help="model JSON to write")

@@ -347,7 +347,7 @@ def print_table(rows: list[dict]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "outputs" / "fuzz",
                         help="work folder (cleared; default outputs/fuzz)")
     parser.add_argument("--jobs", type=int, default=2, help="cases run in parallel")

@@ -327,7 +327,7 @@ def print_table(table: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True, help="pose2sim_single_trial folder")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--step", type=int, default=4,

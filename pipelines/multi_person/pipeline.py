@@ -297,7 +297,7 @@ def main(out_dir: Path, *, data: Path | None = None, cases: tuple[str, ...] = CA
 if __name__ == "__main__":
     from dloe_sfm.cli import setup_logging
 
-    parser = argparse.ArgumentParser(description=__doc__,
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=REPO / "assets" / "mocap",
                         help="mocap clips (assets/mocap or ../shared/data/mocap)")
