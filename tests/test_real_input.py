@@ -188,3 +188,23 @@ def test_overlays_only_on_readable_images(placeholders, tmp_path, log_lines) -> 
     assert f"'{empty}', '{missing}'" in log_lines[0]
     log_lines.clear()
     assert readable_images(ws, [real]) == [real] and log_lines == []
+
+
+@pytest.mark.shared
+def test_import_calibration_from_pose2sim_keypoint_folders(shared_dir, tmp_path, capsys) -> None:
+    """The real trial: one image per OpenPose file, each in its folder's camera."""
+    trial = shared_dir / "data" / "pose2sim_single_trial"
+    code, err = run_cli("import-calibration", trial / "calibration" / "Calib.qca.txt",
+                        "--format", "qualisys", "--keypoints", trial / "pose", "--out",
+                        tmp_path / "ws" / "sparse" / "0", capsys=capsys)
+    assert code == 0, err
+    ws = colmap.load_workspace(tmp_path / "ws")
+    # 100 frames per camera, and the empty del_00000k_0.json Pose2Sim left in cam03 and cam04
+    assert len(ws.image_names) == 404 and "cam04_json/del_000001_0.jpg" in ws.image_names
+    cameras: dict[str, set[int]] = {}
+    for name in ws.image_names:
+        cameras.setdefault(name.split("/")[0], set()).add(ws.camera_id(name))
+    assert sorted(cameras) == [f"cam0{k}_json" for k in range(1, 5)]
+    assert all(len(ids) == 1 for ids in cameras.values())
+    assert len(set.union(*cameras.values())) == 4
+    assert ws.image_size("cam03_json/cam03.0042.jpg") == (1088, 1920)
