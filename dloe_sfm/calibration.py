@@ -510,9 +510,6 @@ def keypoint_images_per_camera(keypoints: Path | str, camera_names: Sequence[str
     """One image per keypoint file (or entry) of ``keypoints`` in keypoint format ``fmt``
     (``keypoint_image_names``), by camera (``names_per_camera``): the frame list of a rig
     whose videos were never cut into image files (Pose2Sim's ``camXX_json/camXX.NNNN.json``)."""
-    if fmt.lower() == "aruco":
-        raise InputError("keypoint format 'aruco' is detected in image files; it cannot give "
-                         "the frame list of a calibration without images")
     kp = read_keypoints(fmt, keypoints)
     return names_per_camera(keypoint_image_names(list(kp.points)), camera_names, keypoints)
 
