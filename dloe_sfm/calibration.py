@@ -15,7 +15,7 @@ import sys
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 import cv2
 import numpy as np
@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from .colmap import CameraSpec, ImageSpec, write_model
 from .errors import InputError
-from .images import list_images
+from .images import IMAGE_SUFFIXES, list_images, natural_key
+from .keypoints import read_keypoints
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -450,19 +451,16 @@ def _name_pattern(name: str) -> re.Pattern | None:
     return re.compile("^" + r"[\W_]*".join(parts) + end, re.IGNORECASE)
 
 
-def images_per_camera(image_dir: Path | str, camera_names: Sequence[str]
-                      ) -> dict[str, list[str]]:
-    """The images below ``image_dir`` (POSIX names relative to it, natural order) by camera:
-    an image belongs to the camera whose name starts its first folder (``cam01/0001.jpg``,
-    ``cam_01_img/0001.jpg``) or, directly in ``image_dir``, its file name
-    (``cam01_0001.jpg``); the longest such camera name wins."""
-    image_dir = Path(image_dir)
-    if not image_dir.is_dir():
-        raise InputError(f"{image_dir}: no such image folder")
+def names_per_camera(names: Sequence[str], camera_names: Sequence[str], source: Path | str
+                     ) -> dict[str, list[str]]:
+    """Image ``names`` (POSIX paths, kept in their order) by camera: a name belongs to the
+    camera whose name starts its first folder (``cam01/0001.jpg``, ``cam_01_img/0001.jpg``)
+    or, without a folder, its file name (``cam01_0001.jpg``); the longest such camera name
+    wins. ``source`` (the folder they come from) names them in messages."""
     patterns = [(c, _name_pattern(c)) for c in camera_names]
     images: dict[str, list[str]] = {c: [] for c in camera_names}
     unmatched = []
-    for image in list_images(image_dir):
+    for image in names:
         parts = image.split("/")
         head = parts[0] if len(parts) > 1 else Path(image).stem
         matches = [(m.end(), c) for c, pattern in patterns
@@ -473,18 +471,47 @@ def images_per_camera(image_dir: Path | str, camera_names: Sequence[str]
         best = max(end for end, _ in matches)
         owners = [c for end, c in matches if end == best]
         if len(owners) > 1:
-            raise InputError(f"{image_dir}: image '{image}' could be of camera "
+            raise InputError(f"{source}: image '{image}' could be of camera "
                              f"{' or '.join(map(repr, owners))}")
         images[owners[0]].append(image)
     if unmatched:
-        logger.info("%s: %d image(s) named after no camera, left out (e.g. '%s')", image_dir,
+        logger.info("%s: %d image(s) named after no camera, left out (e.g. '%s')", source,
                     len(unmatched), unmatched[0])
     if not any(images.values()):
-        raise InputError(f"{image_dir}: no image in a folder or file named after a camera "
+        raise InputError(f"{source}: no image in a folder or file named after a camera "
                          f"({', '.join(camera_names)})")
-    for camera in (c for c, names in images.items() if not names):
-        logger.warning("%s: no image of camera '%s'", image_dir, camera)
+    for camera in (c for c, listed in images.items() if not listed):
+        logger.warning("%s: no image of camera '%s'", source, camera)
     return images
+
+
+def images_per_camera(image_dir: Path | str, camera_names: Sequence[str]
+                      ) -> dict[str, list[str]]:
+    """The images below ``image_dir`` (POSIX names relative to it, natural order) by camera
+    (``names_per_camera``)."""
+    image_dir = Path(image_dir)
+    if not image_dir.is_dir():
+        raise InputError(f"{image_dir}: no such image folder")
+    return names_per_camera(list_images(image_dir), camera_names, image_dir)
+
+
+def keypoint_image_names(keys: Sequence[str]) -> list[str]:
+    """One image name per keypoint key, for a model without image files: the key itself
+    (``cam01_json/cam01.0012`` -> ``cam01_json/cam01.0012.jpg``, ``.jpg`` added unless it ends
+    in an image suffix), so the keypoints match their image exactly (``match_names`` rule 1)
+    and its last number is the frame number (``observations.assign_streams``)."""
+    names = (k if PurePosixPath(k).suffix.lower() in IMAGE_SUFFIXES else f"{k}.jpg"
+             for k in (key.replace("\\", "/") for key in keys))
+    return sorted(names, key=natural_key)
+
+
+def keypoint_images_per_camera(keypoints: Path | str, camera_names: Sequence[str], *,
+                               fmt: str = "openpose") -> dict[str, list[str]]:
+    """One image per keypoint file (or entry) of ``keypoints`` in keypoint format ``fmt``
+    (``keypoint_image_names``), by camera (``names_per_camera``): the frame list of a rig
+    whose videos were never cut into image files (Pose2Sim's ``camXX_json/camXX.NNNN.json``)."""
+    kp = read_keypoints(fmt, keypoints)
+    return names_per_camera(keypoint_image_names(list(kp.points)), camera_names, keypoints)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -501,18 +528,27 @@ def import_calibration(
     *,
     fmt: str | None = None,
     image_dir: Path | str | None = None,
+    keypoints: Path | str | None = None,
+    keypoint_format: str = "openpose",
     overwrite: bool = False,
 ) -> Path:
     """Write a COLMAP model of a calibration (``read_calibration``): one COLMAP camera per
     calibrated camera and its images, all at that camera's pose: ``image_names_per_camera``,
-    else the images below ``image_dir`` (``images_per_camera``), else one image
-    ``<camera name>.jpg`` per camera. A size the calibration lacks is read from the camera's
-    first image in ``image_dir``. Returns the model folder."""
+    else the images below ``image_dir`` (``images_per_camera``), else one image per file of
+    ``keypoints`` in ``keypoint_format`` (``keypoint_images_per_camera``; no image files
+    needed), else one image ``<camera name>.jpg`` per camera. A size the calibration lacks is
+    read from the camera's first image in ``image_dir``. Returns the model folder."""
+    if image_dir is not None and keypoints is not None:
+        raise InputError(f"{keypoints}: the images come from the image folder {image_dir} or "
+                         "from the keypoint files, not both")
     cameras = read_calibration(calib_file, fmt)
     names = [c.name for c in cameras]
     if image_names_per_camera is None:
-        image_names_per_camera = (images_per_camera(image_dir, names) if image_dir is not None
-                                  else {c.name: [f"{c.name}.jpg"] for c in cameras})
+        image_names_per_camera = (
+            images_per_camera(image_dir, names) if image_dir is not None
+            else keypoint_images_per_camera(keypoints, names, fmt=keypoint_format)
+            if keypoints is not None
+            else {c.name: [f"{c.name}.jpg"] for c in cameras})
     unknown = [k for k in image_names_per_camera if k not in names]
     if unknown:
         raise InputError(f"{calib_file}: no camera named {', '.join(map(repr, unknown))} "

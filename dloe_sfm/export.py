@@ -12,6 +12,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -456,7 +457,8 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
                    workspace: Workspace | None = None, static_xyz: np.ndarray | None = None,
                    static_rgb: np.ndarray | None = None, layout: Layout | None = None,
                    report: dict | None = None, overwrite: bool = False, plots: bool = True,
-                   export_rate: float | None = None, fps: Fps = None) -> dict:
+                   export_rate: float | None = None, fps: Fps = None,
+                   overlay_images: Sequence[str] | None = None) -> dict:
     """Write the outputs of docs/interfaces.md ("Reconstruct outputs") of a solved capture to
     ``out`` atomically (``write_outputs``, and ``plots/`` unless ``plots=False``:
     ``viz.write_plots``); returns the report written to ``report.json``.
@@ -466,7 +468,8 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
     (M, 3) uint8 are given, to ``static.ply``; its images to the overlays. An existing ``out``
     is refused (InputError) unless ``overwrite`` and dloe-sfm wrote it (``io.check_output``),
     in which case it is replaced only once the new folder is complete. ``export_rate``, ``fps``:
-    as :func:`write_outputs`.
+    as :func:`write_outputs`. ``overlay_images``: the images with a readable file, when
+    checked already (``viz.readable_images``).
     """
     out = Path(out)
     target = check_output(out, overwrite=overwrite, protected=[] if workspace is None else
@@ -485,7 +488,8 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
             viz.write_plots(tmp / "plots", capture, result, workspace=workspace,
                             edges=None if layout is None else
                             np.asarray(layout.edges, dtype=np.int64).reshape(-1, 2),
-                            point_names=None if layout is None else list(layout.point_names))
+                            point_names=None if layout is None else list(layout.point_names),
+                            overlay_images=overlay_images)
     logger.info("outputs written in %.1f s: %s (frames/, trajectories.npz / .trc / .c3d, "
                 "report.json%s)",
                 time.perf_counter() - tic, out, ", plots/" if plots else "")

@@ -19,9 +19,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import __version__
-from .core.capture import OPTIONAL_KEYS, REQUIRED_KEYS, Capture, field_shapes
+from .core.capture import MIN_IMAGES, OPTIONAL_KEYS, REQUIRED_KEYS, Capture, field_shapes
 from .core.result import Result
 from .errors import InputError
+from .keypoints.base import quoted, shown
 from .resources import check_memory
 from .truth import GroundTruth
 
@@ -405,6 +406,25 @@ def load_capture(path: Path | str, *, validate: bool = True) -> Capture:
     return capture.validate(str(path)) if validate else capture
 
 
+def without_empty_images(capture: Capture, source: Path | str) -> tuple[Capture, np.ndarray]:
+    """``capture`` (checked with ``validate(empty_images=True)``) without the images that
+    observe no point (the detector found nobody), checked again, and the (N',) indices of the
+    images kept. The images left out are named in one warning; fewer than ``MIN_IMAGES`` left
+    is an InputError naming ``source``."""
+    observing = capture.visible.reshape(capture.num_images, -1).any(axis=1)
+    if observing.all():
+        return capture, np.arange(capture.num_images)
+    kept = np.flatnonzero(observing)
+    if kept.size < MIN_IMAGES:
+        raise InputError(f"{shown(source)}: only {kept.size} of {capture.num_images} images "
+                         f"observe a point, at least {MIN_IMAGES} needed")
+    empty = capture.image_names[~observing].tolist()
+    logger.warning("%s: %d image(s) observe no point (the detector found nobody), skipped: %s",
+                   shown(source), len(empty), ", ".join(quoted(n) for n in empty[:5])
+                   + (f" and {len(empty) - 5} more" if len(empty) > 5 else ""))
+    return capture.subset(kept).validate(shown(source)), kept
+
+
 def load_truth(path: Path | str) -> GroundTruth:
     """Read the ground truth of a ``capture.npz`` (the keys ``TRUTH_KEYS``; ``X_true`` and
     ``t_true`` required), headers checked against ``x`` before any data is decompressed.
@@ -493,8 +513,12 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
     }
 
 
-def save_result(path: Path | str, result: Result) -> Path:
-    return save_npz(path, **result_arrays(result))
+def save_result(path: Path | str, result: Result, *, skipped_images: Sequence[str] = ()
+                ) -> Path:
+    """Write a ``result.npz``; ``skipped_images``: names of the capture's images left out of
+    the solve (``without_empty_images``), key ``skipped_images`` when not empty."""
+    skipped = {"skipped_images": np.asarray(skipped_images, dtype=str)} if skipped_images else {}
+    return save_npz(path, **result_arrays(result), **skipped)
 
 
 def load_result(path: Path | str) -> Result:

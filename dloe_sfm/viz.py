@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import logging
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -32,6 +33,7 @@ from .core.bias import per_stream
 from .core.capture import Capture
 from .core.result import Result
 from .io import atomic_path
+from .keypoints.base import quoted
 
 if TYPE_CHECKING:
     from .colmap import Workspace
@@ -555,14 +557,36 @@ def animate(X: np.ndarray, order: np.ndarray, path: Path | str, *,
     return path
 
 
+def readable_images(workspace: Workspace, names: Sequence[str]) -> list[str]:
+    """The ``names`` whose file in the workspace's image folder OpenCV can read (judged by its
+    header, without decoding it), for the overlays; the others are named in one warning
+    (keypoints and a calibration without image files, or empty placeholders, are normal
+    input: only the overlays need pixels)."""
+    folder = workspace.image_dir
+    readable = [] if folder is None else [
+        n for n in names if (folder / n).is_file() and cv2.haveImageReader(str(folder / n))]
+    if len(readable) < len(names):
+        missing = [n for n in names if n not in set(readable)]
+        where = (f"{workspace.model_dir}: no image folder" if folder is None
+                 else f"{folder}: no readable image file")
+        logger.warning("%s for %d of %d image(s) (%s): no reprojection overlay on them%s",
+                       where, len(missing), len(names),
+                       ", ".join(quoted(n) for n in missing[:3])
+                       + (f" and {len(missing) - 3} more" if len(missing) > 3 else ""),
+                       "" if readable else "; the other plots are written")
+    return readable
+
+
 def write_plots(folder: Path, capture: Capture, result: Result, *,
                 workspace: Workspace | None = None,
                 edges: np.ndarray | None = None, point_names: list[str] | None = None,
-                num_overlays: int = 4) -> list[Path]:
+                num_overlays: int = 4, overlay_images: Sequence[str] | None = None
+                ) -> list[Path]:
     """Sequence, affinity, event and trajectory plots, the detector offsets taken out (when
     any), the animation (``animation.gif``, with the workspace's static points), plus
     reprojection overlays on ``num_overlays`` images
-    spread over the estimated order when the workspace's image files exist. ``edges`` (E, 2)
+    spread over the estimated order among ``overlay_images`` (names of images with a readable
+    file; default ``readable_images``, which warns about the others). ``edges`` (E, 2)
     and ``point_names`` (P,) are the layout's (point ids); with several subjects, skeletons
     and trajectories are drawn per subject."""
     capture = solved_capture(capture, result)
@@ -591,19 +615,22 @@ def write_plots(folder: Path, capture: Capture, result: Result, *,
                 static_rgb=None if workspace is None else workspace.static_rgb,
                 up=-capture.R[:, 1].mean(axis=0)),  # image up is -y of the camera
     ]
-    if workspace is None or workspace.image_dir is None or num_overlays <= 0:
+    if workspace is None or num_overlays <= 0:
+        return written
+    if overlay_images is None:
+        overlay_images = readable_images(workspace, capture.image_names)
+    readable = np.isin(capture.image_names, list(overlay_images))
+    if not readable.any():
         return written
 
     detected = capture if result.offset_px is None else replace(  # the user's own detections
         capture, x=capture.x + result.offset_px)
     rays = detected.rays()
-    picks = result.order[np.linspace(0, capture.num_images - 1, num_overlays).round().astype(int)]
+    candidates = result.order[readable[result.order]]
+    picks = candidates[np.linspace(0, candidates.size - 1, num_overlays).round().astype(int)]
     for i in dict.fromkeys(picks.tolist()):
         name = str(capture.image_names[i])
         image_path = Path(workspace.image_dir) / name
-        if not image_path.is_file():
-            logger.debug("no image file %s: no overlay", image_path)
-            continue
         # any point on the observed ray projects to the observed (distorted) pixel
         observed = np.full((capture.num_points, 2), np.nan)
         vis = capture.visible[i]

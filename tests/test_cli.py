@@ -105,9 +105,32 @@ def nan_camera(C):
     return C
 
 
-def blind_image(x):
-    x[5] = np.nan
-    return x
+def blind_images(*images):
+    def blind(x):
+        x[list(images)] = np.nan
+        return x
+    return blind
+
+
+def test_solve_skips_images_that_observe_no_point(capture_file, tmp_path):
+    """An image where the detector found nobody is real input: solve leaves it out with one
+    warning naming it, the result file lists it, evaluate pairs the same images."""
+    blind = corrupt(capture_file, tmp_path / "blind.npz", x=blind_images(5, 9))
+    out = tmp_path / "result.npz"
+    r = dloe("solve", blind, "--out", out, "--set", "embedding=shp")
+    assert r.returncode == 0, r.stderr
+    warnings = [line for line in r.stderr.splitlines() if "WARNING" in line]
+    assert len(warnings) == 1, warnings
+    assert "2 image(s) observe no point" in warnings[0]
+    assert "'cam0/00005', 'cam0/00009'" in warnings[0] and str(blind) in warnings[0]
+    n = load_capture(capture_file).num_images
+    assert load_result(out).X.shape[0] == n - 2
+    with np.load(out) as result:
+        assert result["skipped_images"].tolist() == ["cam0/00005", "cam0/00009"]
+    r = dloe("evaluate", out, blind, "--no-references")
+    assert r.returncode == 0, r.stderr
+    scores = dict(line.split() for line in r.stdout.strip().splitlines())
+    assert float(scores["kendall_tau"]) > 0.99
 
 
 @pytest.mark.parametrize(
@@ -118,7 +141,8 @@ def blind_image(x):
         ({"R": lambda R: R[:-1]}, "field 'R' must have shape"),
         ({"C": nan_camera}, "field 'C' is not finite for image 3"),
         ({"stream": lambda s: np.zeros_like(s)}, "one stream"),
-        ({"x": blind_image}, "image 5 ('cam0/00005') observes no point"),
+        ({"x": lambda x: np.where(np.arange(len(x))[:, None, None] < 2, x, np.nan)},
+         "images observe a point, at least 3 needed"),
         ({"x": lambda x: np.where(np.isnan(x), x, np.inf)}, "infinite"),
         ({"fps": lambda f: f[:-1]}, "field 'fps' must have shape"),
         ({"fps": lambda f: np.where(np.arange(f.size) == 4, -1.0, f)},

@@ -147,8 +147,11 @@ class Capture:
         """M, the detections per image of a several-subject capture (1 for (N, P, 2) ``x``)."""
         return self.x.shape[1] if self.x.ndim == 4 else 1
 
-    def validate(self, source: str = "capture") -> Capture:
+    def validate(self, source: str = "capture", *, empty_images: bool = False) -> Capture:
         """Check shapes, values and solvability; raise InputError naming the field and image.
+
+        ``empty_images``: images that observe no point pass (a reader then leaves them out,
+        ``io.without_empty_images``); by default they are an error.
 
         Rotations within ``ROTATION_TOLERANCE`` of orthonormal are projected to SO(3): the
         returned capture carries the projected ones (the largest deviation is logged).
@@ -207,7 +210,7 @@ class Capture:
             )
         visible = self.visible.reshape(n, -1, p)
         empty = ~visible.any(axis=(1, 2))
-        if empty.any():
+        if empty.any() and not empty_images:
             raise InputError(f"{source}: image {self._name(np.argmax(empty))} observes no point")
         never = ~visible.any(axis=(0, 1))
         if never.any():

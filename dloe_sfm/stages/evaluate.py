@@ -8,20 +8,29 @@ import json
 from pathlib import Path
 
 from ..evaluate import evaluate, evaluate_output
-from ..io import atomic_path, check_not_input, load_capture, load_result, load_truth
+from ..io import (
+    atomic_path,
+    check_not_input,
+    load_capture,
+    load_result,
+    load_truth,
+    without_empty_images,
+)
 
 
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
     """Evaluate ``result`` (result.npz) against ``capture`` (capture.npz with ground truth), or
-    a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`)."""
+    a ``reconstruct`` output folder against a truth file (:func:`evaluate_output`). The
+    capture's images that observe no point are left out, as ``solve`` does."""
     if out is not None:
         check_not_input(out, (result, capture))
     if Path(result).is_dir():
         scores = evaluate_output(result, capture)
     else:
-        cap = load_capture(capture)
-        truth = load_truth(capture)
-        scores = evaluate(cap, truth, load_result(result), references=references)
+        cap, kept = without_empty_images(load_capture(capture, validate=False).validate(
+            str(capture), empty_images=True), capture)
+        scores = evaluate(cap, load_truth(capture).subset(kept), load_result(result),
+                          references=references)
     if out is not None:
         with atomic_path(out) as tmp:
             tmp.write_text(json.dumps(scores, indent=2))

@@ -70,6 +70,9 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     the capture's own: the rates of the frame numbers in the image names (a video's, also when
     every k-th frame is kept; ``mocap_export.warn_stepped_frames``); times in seconds, offsets
     in ms, the TRC / C3D in Hz.
+    ``plots``: ``plots/``; the overlays need the image files, which are checked before the
+    solve (``viz.readable_images``: one warning names the images without a readable file;
+    keypoints and a calibration without image files are normal input).
     ``out`` is checked first (``io.check_output``: never an input, an existing folder only
     replaced with ``overwrite`` and when dloe-sfm wrote it, writable) and written atomically:
     on any error nothing is left at ``out``. Returns ``out``.
@@ -100,6 +103,11 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     timings["build_capture"] = time.perf_counter() - tic
     check_fps(fps, capture.stream_ids)
     capture = with_fps(capture, fps)
+    overlays = None
+    if plots:  # before the solve: missing or empty image files only lose the overlays
+        from ..viz import readable_images  # matplotlib / cv2 only when plotting
+
+        overlays = readable_images(ws, capture.image_names.tolist())
 
     tic = time.perf_counter()
     check_solve_memory(capture, options, workspace)
@@ -136,7 +144,8 @@ def main(workspace: Path, keypoints: Path | None, fmt: str, out: Path, *,
     from ..export import export_outputs  # open3d is slow to import: only when writing
 
     export_outputs(out, capture, result, workspace=ws, layout=layout, report=report,
-                   overwrite=overwrite, plots=plots, export_rate=export_rate)
+                   overwrite=overwrite, plots=plots, export_rate=export_rate,
+                   overlay_images=overlays)
     return out
 
 

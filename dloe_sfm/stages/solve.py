@@ -6,12 +6,14 @@ import argparse
 import logging
 from pathlib import Path
 
+import numpy as np
+
 from .. import progress
 from ..config import load_options
 from ..core.options import Options
 from ..core.result import Result
 from ..core.solver import reconstruct
-from ..io import check_output, load_capture, save_result
+from ..io import check_output, load_capture, save_result, without_empty_images
 from ..resources import check_solve_memory
 
 logger = logging.getLogger("dloe_sfm")
@@ -28,13 +30,17 @@ def main(
 ) -> Result:
     """Solve ``capture`` (capture.npz) and write ``out`` (result.npz); returns the result.
 
+    Images that observe no point (the detector found nobody) are left out with a warning and
+    named in the result file (``skipped_images``); its rows are the capture's other images.
     ``out`` is checked first (``io.check_output``): never an input; an existing file is only
     replaced with ``overwrite`` and when it is a result file.
     """
     out = Path(out)
     target = check_output(out, protected=[capture, config], overwrite=overwrite, kind="file")
     options = load_options(config, overrides, base=options)
-    cap = load_capture(capture)
+    full = load_capture(capture, validate=False).validate(str(capture), empty_images=True)
+    cap, kept = without_empty_images(full, capture)
+    skipped = np.delete(full.image_names, kept).tolist()
     logger.info(
         "solving %s: %d images, %d points, %d streams",
         capture,
@@ -45,7 +51,7 @@ def main(
     check_solve_memory(cap, options, capture)
     with progress.solver_bar() as on_sweep:
         result = reconstruct(cap, options, progress=on_sweep)
-    save_result(target, result)
+    save_result(target, result, skipped_images=skipped)
     logger.info(
         "%s: %s after %d iterations, %.2f s, %d event(s)",
         out,
