@@ -277,7 +277,7 @@ def solve_event(
         A=A,
         W=best.W,
         D=best.D,
-        events=segment_events(A, capture.stream, capture.frame),
+        events=segment_events(A, capture.stream, capture.frame, shapes=best.X),
         embedding=f * norm.scale,
         cost_history=np.array(st.costs),
         change_history=np.array(st.changes),

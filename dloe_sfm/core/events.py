@@ -14,6 +14,15 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+SHORT_RUN = 5
+"""Stream runs of at most this many images (lone photos, bursts) cannot show by stopping that
+an event ended: events made of them alone are split only where the shapes jump
+(:func:`join_touching`)."""
+TOUCH_STEPS = 3.0
+"""Two such events whose closest shapes are within this many typical steps (median distance of
+an image to its nearest shape) of each other are one motion: they are joined."""
 
 
 def symmetrised(A: sp.spmatrix) -> sp.csr_matrix:
@@ -135,12 +144,44 @@ def _normalised_cut(G: sp.csr_matrix, size: np.ndarray) -> np.ndarray | None:
     return pos <= k if weak else None
 
 
+def join_touching(labels: np.ndarray, runs: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``labels`` with the events of short runs only (``SHORT_RUN``) joined where their shapes
+    ``X`` (N, ...) touch: the closest pair across two events no farther apart than
+    ``TOUCH_STEPS`` x the larger of the two events' typical steps (each image's distance to its
+    nearest shape, median). A time gap leaves a jump in shape; a graph cut through a continuous
+    motion does not, e.g. where a still pose ends (docs/method.md, "Events of lone photos").
+    Nearest neighbours by k-d trees: no N x N table."""
+    n = labels.size
+    short = np.bincount(runs)[runs] <= SHORT_RUN
+    F = X.reshape(n, -1)
+    while True:
+        events = [e for e in np.unique(labels) if short[labels == e].all()
+                  and (labels == e).sum() >= 2]
+        if len(events) < 2:
+            return labels
+        step = {e: float(np.median(cKDTree(F[labels == e]).query(F[labels == e], 2)[0][:, 1]))
+                for e in events}
+        joined = False
+        for a in events:
+            mine = labels == a
+            others = np.isin(labels, events) & ~mine
+            gap, j = cKDTree(F[others]).query(F[mine])
+            b = labels[np.flatnonzero(others)[j[np.argmin(gap)]]]
+            if gap.min() <= TOUCH_STEPS * max(step[a], step[b]):
+                labels = np.where(labels == b, a, labels)
+                joined = True
+                break
+        if not joined:
+            return labels
+
+
 def segment_events(
     A: sp.spmatrix,
     streams: np.ndarray | None = None,
     frames: np.ndarray | None = None,
     *,
     min_size: int = 8,
+    shapes: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) event labels 0..E-1 of the images linked by affinity ``A``.
 
@@ -149,7 +190,8 @@ def segment_events(
     of the smaller run's size are not linked; the connected components of what remains are cut
     further while a weak normalised cut exists (``_normalised_cut``: stray links). Labels
     are numbered by the event's first image; events of fewer than ``min_size`` images join the
-    largest.
+    largest. With ``shapes`` (N, ...), events of lone photos and bursts whose shapes touch are
+    joined (:func:`join_touching`).
     """
     n = A.shape[0]
     runs = np.arange(n) if streams is None else stream_runs(streams, frames)
@@ -172,6 +214,8 @@ def segment_events(
     for c, idx in enumerate(parts):
         run_label[idx] = c
     labels = run_label[runs]
+    if shapes is not None:
+        labels = join_touching(labels, runs, shapes)
     sizes = np.bincount(labels)
     small = sizes < min_size
     if small.any() and not small.all():

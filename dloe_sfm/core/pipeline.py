@@ -47,6 +47,10 @@ from .wstep import select_candidates, w_step
 
 logger = logging.getLogger("dloe_sfm")
 
+MOST_OF_AN_IMAGE = 0.5
+"""Share of an image's observations beyond which the robust rounds take a misprediction for the
+graph's, not the detector's: none of that image's observations is dropped."""
+
 
 def solve_single(
     capture: Capture, options: Options, progress: Progress | None = None
@@ -107,7 +111,7 @@ def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> n
     seen by fewer than two streams cannot be triangulated; it joins the largest event.
     """
     W_var = shape_space_graph(capture, options, X_world)
-    labels = segment_events(W_var, capture.stream, capture.frame)
+    labels = segment_events(W_var, capture.stream, capture.frame, shapes=X_world)
     sizes = np.bincount(labels)
     for e in range(labels.max() + 1):
         if np.unique(capture.stream_ids[labels == e]).size < 2:
@@ -224,6 +228,12 @@ def robust_rounds(
         trial = apply_swaps(current, new) if new.size else current
         res = residuals_px(trial, X_pred)
         weights = loss_weights(res, scale, options.robust_loss)
+        # a detector gets a joint wrong, not most of a person: where the graph mispredicts most
+        # of an image, its prediction failed there (a wrong link), and dropping the detections
+        # would leave the image to float on that link (docs/method.md, "Lone photos")
+        mispredicted = ((weights < 0.5).sum(axis=1)
+                        > MOST_OF_AN_IMAGE * current.visible.sum(axis=1))
+        weights[mispredicted] = 1.0
         now = weights < 0.5
         if now.sum() > 0.5 * current.visible.sum():
             # a loss that drops most of the data is no longer rejecting outliers
@@ -238,8 +248,10 @@ def robust_rounds(
             break
         expected = float(np.nanmedian(res[~now]))
         current, swaps, rejected = trial, np.concatenate([swaps, new]), now
-        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)",
-                    it + 1, len(new), int(rejected.sum()), float(np.median(scale)))
+        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)%s",
+                    it + 1, len(new), int(rejected.sum()), float(np.median(scale)),
+                    f"; {int(mispredicted.sum())} image(s) mispredicted in most of their points "
+                    "kept whole" if mispredicted.any() else "")
         solved = reweighted(current, weights) if robust else current
         again = solve_events(solved, options, labels, None, progress)
         result = replace(
