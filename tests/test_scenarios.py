@@ -9,15 +9,28 @@ import scipy.sparse as sp
 
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.clocks import time_chain
-from dloe_sfm.core.events import cluster_coordinates, segment_events, stream_runs
+from dloe_sfm.core.events import (
+    cluster_coordinates,
+    join_touching,
+    segment_events,
+    stream_runs,
+)
 from dloe_sfm.core.multitarget import constrained_clusters
 from dloe_sfm.core.options import Options, RobustLoss
-from dloe_sfm.core.pipeline import robust_on_clocks
+from dloe_sfm.core.pipeline import MOST_OF_AN_IMAGE, robust_on_clocks
 from dloe_sfm.core.problem import build_problem, initialise, normalise
-from dloe_sfm.core.robust import find_swaps, loss_weights, reweighted
+from dloe_sfm.core.robust import (
+    find_swaps,
+    loss_scale,
+    loss_weights,
+    predicted,
+    residuals_px,
+    reweighted,
+    spare_mispredicted,
+)
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.steps import x_step
-from dloe_sfm.synth import SimulationSettings, load_mocap
+from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
     add_outliers,
@@ -114,6 +127,55 @@ def test_loss_weights():
     assert np.allclose(loss_weights(res, scale, RobustLoss.CAUCHY), [1, 0.5, 1 / 101, 1])
     assert np.allclose(loss_weights(res, scale, RobustLoss.HUBER), [1, 1, 0.1, 1])
     assert np.allclose(loss_weights(res, scale, RobustLoss.NONE), 1)
+
+
+def test_a_mispredicted_image_keeps_its_detections_and_outliers_still_go(clips):
+    """120 lone photos with 3 % wrong detections, predicted by the true time chain but for one
+    image linked to a shape 0.8 s away: that image's points are mostly off the prediction and
+    it keeps them all (dropped, it would float on the wrong link), as do the few images the
+    chain interpolates badly in the jump; elsewhere the wrong detections are still the ones
+    weighted down."""
+    cap, truth = simulate(clips["jumping_1"], SimulationSettings(num_streams=0, lone_photos=120,
+                                                                 seed=0))
+    cap, truth = add_outliers(cap, truth, 0.03, seed=1)
+    W, _ = time_chain(truth.t)
+    order = np.argsort(truth.t)
+    wrong, far = order[40], order[40 + int(0.8 * 120 / 3.5)]
+    W = W.tolil()
+    W[wrong, :] = 0.0
+    W[wrong, far] = 1.0
+    res = residuals_px(cap, predicted(W.tocsr(), truth.X))
+    weights = loss_weights(res, loss_scale(res, None), RobustLoss.CAUCHY)
+    assert (weights[wrong] < 0.5).mean() > MOST_OF_AN_IMAGE
+    spared, mispredicted = spare_mispredicted(weights, cap.visible, MOST_OF_AN_IMAGE)
+    assert mispredicted[wrong] and mispredicted.sum() <= 0.1 * cap.num_images
+    assert (spared[mispredicted] == 1.0).all()
+    # a spared image holds clean detections the chain interpolates badly, not a wrong person
+    assert truth.outliers[mispredicted].mean() < 0.1
+    rest = ~mispredicted
+    assert ((spared[rest] < 0.5) & truth.outliers[rest]).sum() >= 0.9 * truth.outliers[rest].sum()
+    np.testing.assert_array_equal(spared[rest], weights[rest])
+
+
+def test_a_still_start_is_no_event_of_its_own_but_a_gap_is(clips):
+    """Lone photos: a cut between a still start and the motion it starts is joined (the shapes
+    touch), two clips apart in time stay two events, and video runs are never joined."""
+    cap, truth = simulate(clips["jumping_1"], SimulationSettings(num_streams=0, lone_photos=200,
+                                                                 seed=0))
+    runs = stream_runs(cap.stream, cap.frame)
+    still = np.linalg.norm(truth.X - truth.X[np.argmin(truth.t)], axis=(1, 2)) < 0.02
+    assert 5 <= still.sum() <= 195
+    assert np.unique(join_touching(still.astype(int), runs, truth.X)).size == 1
+    cap2, truth2 = simulate_events([clips["walking_1"], clips["jumping_1"]],
+                                   SimulationSettings(num_streams=0, lone_photos=200, seed=0))
+    runs2 = stream_runs(cap2.stream, cap2.frame)
+    assert np.unique(truth2.events).size == 2
+    np.testing.assert_array_equal(join_touching(truth2.events, runs2, truth2.X), truth2.events)
+    video, vtruth = simulate(clips["jumping_1"], SimulationSettings(rate=15))
+    vstill = np.linalg.norm(vtruth.X - vtruth.X[np.argmin(vtruth.t)], axis=(1, 2)) < 0.02
+    np.testing.assert_array_equal(
+        join_touching(vstill.astype(int), stream_runs(video.stream, video.frame), vtruth.X),
+        vstill.astype(int))
 
 
 def test_find_swaps_on_an_exact_prediction(rng, clips):

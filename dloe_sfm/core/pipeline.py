@@ -40,6 +40,7 @@ from .robust import (
     predicted,
     residuals_px,
     reweighted,
+    spare_mispredicted,
 )
 from .sequencing import affine_time
 from .steps import Problem, x_step
@@ -49,7 +50,8 @@ logger = logging.getLogger("dloe_sfm")
 
 MOST_OF_AN_IMAGE = 0.5
 """Share of an image's observations beyond which the robust rounds take a misprediction for the
-graph's, not the detector's: none of that image's observations is dropped."""
+graph's, not the detector's: none of that image's observations is dropped
+(``robust.spare_mispredicted``; docs/method.md, "Lone photos")."""
 
 
 def solve_single(
@@ -227,13 +229,8 @@ def robust_rounds(
         new = find_swaps(current, X_pred, pairs, scale) if pairs is not None else swaps[:0]
         trial = apply_swaps(current, new) if new.size else current
         res = residuals_px(trial, X_pred)
-        weights = loss_weights(res, scale, options.robust_loss)
-        # a detector gets a joint wrong, not most of a person: where the graph mispredicts most
-        # of an image, its prediction failed there (a wrong link), and dropping the detections
-        # would leave the image to float on that link (docs/method.md, "Lone photos")
-        mispredicted = ((weights < 0.5).sum(axis=1)
-                        > MOST_OF_AN_IMAGE * current.visible.sum(axis=1))
-        weights[mispredicted] = 1.0
+        weights, mispredicted = spare_mispredicted(
+            loss_weights(res, scale, options.robust_loss), current.visible, MOST_OF_AN_IMAGE)
         now = weights < 0.5
         if now.sum() > 0.5 * current.visible.sum():
             # a loss that drops most of the data is no longer rejecting outliers
