@@ -3,6 +3,7 @@ all around the scene, read through real pycolmap and dloe_sfm, and ``dloe-sfm de
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -18,6 +19,8 @@ from dloe_sfm.evaluate import evaluate_output
 from dloe_sfm.keypoints import read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.stages.demo import CROWD
+
+PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "crowd_workspaces" / "pipeline.py"
 
 
 @pytest.fixture(scope="module")
@@ -123,3 +126,20 @@ def test_demo_crowd_runs_and_scores(tmp_path, capsys, truth):
     assert s["images"] == truth["image_names"].size  # every image reconstructed
     assert {"error_mm", "error_aligned_mm", "kendall_tau", "sync_rms_ms"} <= s.keys()
     assert np.isfinite([s["error_mm"], s["kendall_tau"], s["sync_rms_ms"]]).all()
+
+
+@pytest.mark.slow
+def test_crowd_workspaces_pipeline_scores_against_the_oracle(crowd, truth, tmp_path):
+    """``pipelines/crowd_workspaces`` on the bundled workspace: the references on the same SfM
+    cameras and the five acceptance lines are there (measured figures: assets/crowd/README.md)."""
+    spec = importlib.util.spec_from_file_location("pipeline_crowd_workspaces", PIPELINE)
+    pipeline = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(pipeline)
+    s = pipeline.score_workspace(crowd, tmp_path / "dloe")
+    counts = np.unique(truth["stream"], return_counts=True)[1]
+    assert (s["lone_photos"], s["bursts"]) == ((counts == 1).sum(), (counts > 1).sum())
+    assert s["images"] == truth["image_names"].size and s["images_without_points"] == 0
+    assert np.isfinite([s["oracle_mm"], s["pseudo_triangulation_mm"], s["sync_periods"]]).all()
+    assert 0 < s["oracle_mm"] < s["pseudo_triangulation_mm"]
+    assert set(s["acceptance"]) == {"mean_vs_oracle", "worst_image", "tau", "sync", "seconds"}
+    assert len(pipeline.table([dict(s, seed=0)]).splitlines()) == 3  # head, the row, the key
