@@ -249,7 +249,7 @@ def render_static(quads: list[TexturedQuad], cam: RenderCamera, all_rays: np.nda
     """Ray-cast the room: (H', W', 3) float32 RGB and (H', W') distance along each unit ray.
 
     Each quad is cast only on the samples of its ``quad_window``: the same image, bit for bit,
-    as casting every sample (a ray outside the window misses the quad), 10-15 x faster.
+    as casting every sample (a ray outside the window misses the quad), 5-15 x faster.
     """
     shape = all_rays.shape[:2]
     all_depth = np.full(shape, np.inf, np.float32)
