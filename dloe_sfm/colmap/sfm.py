@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import pycolmap
@@ -24,7 +24,7 @@ def run_sfm(
     *,
     camera_mode: str | None = None,
     camera_model: str = "SIMPLE_RADIAL",
-    camera_params: Sequence[float] | None = None,
+    camera_params: Sequence[float] | Mapping[str, Sequence[float]] | None = None,
     mapper: str = "global",
     max_num_features: int = 4096,
     first_octave: int = 0,
@@ -38,8 +38,9 @@ def run_sfm(
 
     ``camera_mode``: ``per_folder`` (one camera per sub-folder, i.e. per video stream; the
     default when images sit in sub-folders), ``per_image`` (crowd photos; the default otherwise)
-    or ``single``. ``camera_params`` (COLMAP order for ``camera_model``) fixes known intrinsics:
-    they are then not refined (refining them cost accuracy: docs/method.md, "Around the solver").
+    or ``single``. ``camera_params`` (COLMAP order for ``camera_model``; one set for every camera
+    or, per image name, the set of that image's camera) fixes known intrinsics: they are then
+    not refined (refining them cost accuracy: docs/method.md, "Around the solver").
     ``first_octave`` -1 upsamples the images for SIFT (more matches across wide baselines, slower);
     ``num_threads`` -1 uses every core; ``seed`` (COLMAP's ``random_seed``) makes the mapping
     repeatable. The workspace is built in a temporary sibling and renamed when complete.
@@ -63,7 +64,7 @@ def run_sfm(
     quiet_colmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
-    if camera_params is not None:
+    if camera_params is not None and not isinstance(camera_params, Mapping):
         reader.camera_params = ",".join(repr(float(v)) for v in camera_params)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = int(num_threads)
@@ -83,6 +84,8 @@ def run_sfm(
             camera_mode=pycolmap.CameraMode.__members__[camera_mode.upper()],
             reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu,
         )
+        if isinstance(camera_params, Mapping):
+            _set_camera_params(database, camera_params)
         logger.info("SfM: exhaustive matching")
         pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
         (tmp / "sparse").mkdir()
@@ -109,3 +112,24 @@ def run_sfm(
         sizes = {k: rec.num_reg_images() for k, rec in models.items()}
         logger.info("SfM: %d model(s), registered images %s of %d", len(models), sizes, len(names))
     return workspace_dir
+
+
+def _set_camera_params(database: Path, params: Mapping[str, Sequence[float]]) -> None:
+    """Give each image's camera in ``database`` the intrinsics ``params[image name]``, known
+    (a prior focal length); images sharing a camera must share them."""
+    db = pycolmap.Database.open(database)
+    try:
+        done = {}
+        for image in db.read_all_images():
+            if image.name not in params:
+                raise InputError(f"camera_params: no intrinsics for image {image.name}")
+            values = [float(v) for v in params[image.name]]
+            if done.setdefault(image.camera_id, values) != values:
+                raise InputError(f"camera_params: image {image.name} shares camera "
+                                 f"{image.camera_id} with other intrinsics")
+            camera = db.read_camera(image.camera_id)
+            camera.params = values
+            camera.has_prior_focal_length = True
+            db.update_camera(camera)
+    finally:
+        db.close()

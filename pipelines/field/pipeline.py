@@ -21,6 +21,7 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
 
@@ -79,8 +80,15 @@ def references(workspace: Path, truth: dict[str, np.ndarray]) -> dict[str, float
     }
 
 
-def score(workspace: Path, out: Path) -> dict:
-    """Scores of the reconstruction ``out`` of ``workspace`` and the references."""
+def fastest_period_ms(rates: dict[int, float]) -> float:
+    """The shortest frame period (ms) of the cameras' rates (Hz): the strictest yardstick."""
+    return 1000 / max(rates.values())
+
+
+def score(workspace: Path, out: Path, *,
+          period_ms: Callable[[dict[int, float]], float] = fastest_period_ms) -> dict:
+    """Scores of the reconstruction ``out`` of ``workspace`` and the references; the sync RMS
+    also over ``period_ms`` of the cameras' rates ({stream: Hz})."""
     with np.load(workspace / "ground_truth.npz") as f:
         truth = {k: f[k] for k in ("image_names", "X_true", "t_true", "stream", "frame_rate")}
     scores = evaluate_output(out, workspace / "ground_truth.npz")
@@ -89,7 +97,6 @@ def score(workspace: Path, out: Path) -> dict:
     row = {str(n): i for i, n in enumerate(truth["image_names"])}
     per_image = per_image_errors_mm(X, truth["X_true"][[row[n] for n in names]])
     rates = {int(s): float(r) for s, r in zip(truth["stream"], truth["frame_rate"], strict=True)}
-    period_ms = 1000 / max(rates.values())  # the shortest frame period: the strictest yardstick
     worst = int(np.nanargmax(per_image))
     scores.update({
         "cameras": len(rates),
@@ -99,7 +106,7 @@ def score(workspace: Path, out: Path) -> dict:
         "median_image_mm": float(np.nanmedian(per_image)),
         "worst_over_median": float(per_image[worst] / np.nanmedian(per_image)),
         "images_without_points": int(np.isnan(per_image).sum()),
-        "sync_periods": scores.get("sync_rms_ms", np.nan) / period_ms,
+        "sync_periods": scores.get("sync_rms_ms", np.nan) / period_ms(rates),
     })
     scores.update(references(workspace, truth))
     scores["acceptance"] = {
@@ -121,12 +128,22 @@ def run_seed(seed: int, folder: Path, *, field: object | None = None) -> dict:
         make = renderer()
         make.main(workspace, seed=seed, field=field or make.FieldSettings())
     made = time.perf_counter() - tic
+    scores = reconstruct_and_score(workspace, folder / "dloe")
+    scores.update({"seed": seed, "seconds_workspace": made})
+    return scores
+
+
+def reconstruct_and_score(workspace: Path, out: Path, *,
+                          period_ms: Callable[[dict[int, float]], float] = fastest_period_ms
+                          ) -> dict:
+    """``reconstruct`` with the default options on ``workspace`` into ``out``, scored
+    (``score``) with its run time."""
     tic = time.perf_counter()
-    reconstruct_main(workspace, workspace / "keypoints.csv", "csv", folder / "dloe",
-                     overwrite=True, plots=False)
+    reconstruct_main(workspace, workspace / "keypoints.csv", "csv", out, overwrite=True,
+                     plots=False)
     seconds = time.perf_counter() - tic
-    scores = score(workspace, folder / "dloe")
-    scores.update({"seed": seed, "seconds_workspace": made, "seconds_reconstruct": seconds})
+    scores = score(workspace, out, period_ms=period_ms)
+    scores["seconds_reconstruct"] = seconds
     return scores
 
 
