@@ -13,7 +13,7 @@ import scipy.sparse as sp
 
 from .capture import Capture
 from .clocks import time_chain
-from .events import segment_events
+from .events import SHORT_RUN, segment_events
 from .noise import (
     CHECK_IMAGES,
     FOLD_SWEEPS,
@@ -64,12 +64,19 @@ def sequence(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
-    With the ``affine`` embedding and video streams, both come from the streams' affine clocks
+    With the ``affine`` embedding and no two videos (streams of more than ``events.SHORT_RUN``
+    images), both are the shapes' backbone (``sequencing.backbone_embedding``); with video
+    streams, both come from the streams' affine clocks
     (the prior rescaled to the MDS embedding's length units, which the T term needs; that scale
     is measured on at most ``MDS_SAMPLE`` images spread over the capture, so no N x N table is
     made). Otherwise the loop uses classical MDS of the distances (fast) and ``final`` computes
     the order with ``options.embedding``.
     """
+    if options.embedding is Embedding.AFFINE and (
+            np.bincount(prob.streams) > SHORT_RUN).sum() < 2:
+        # no two videos (lone photos, bursts): the shapes alone order the images
+        f = orient(backbone_embedding(X), prob.streams, frames)
+        return f, f
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
     placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None
     if options.embedding is Embedding.AFFINE:
@@ -80,9 +87,6 @@ def sequence(
             mds = orient(mds_embedding(Z), prob.streams[sample], frames[sample])
             slope = np.polyfit(t[sample], mds, 1)[0]
             return t * abs(slope), t
-        if len(placement.lines) < 2:  # no two videos: the shapes alone order the images
-            f = orient(backbone_embedding(X), prob.streams, frames)
-            return f, f
     Z = distance_matrix(X, prob.streams, frames, options.distance, placement)
     mds = orient(mds_embedding(Z), prob.streams, frames)
     if not final or options.embedding is Embedding.MDS:
