@@ -64,7 +64,7 @@ def test_keypoints_match_projected_truth(demo, model, truth):
 
 
 def test_assets_are_small(assets_dir):
-    """A few MB in all: the demo, field and crowd workspaces, the clips and the README's
-    figures."""
+    """A few MB in all: the demo, field and crowd workspaces, the clips, the Pose2Sim trial's
+    keypoint files and the README's figures."""
     size = sum(f.stat().st_size for f in assets_dir.rglob("*") if f.is_file())
     assert size < 8e6
