@@ -38,6 +38,12 @@ from .robust import predicted
 
 SPACINGS = (2.0, 3.0, 4.0, 5.0)
 """Knot spacings in median sampling intervals of all streams merged (:func:`fit_clocks`)."""
+INTERVAL_FLOOR = 0.5
+"""The knots' sampling interval is at least this share of the streams' merged frame period
+(:func:`merged_period`): first guesses that put streams nearly in phase collapse the median gap
+between their times, and knots closer than a stream's frames overfit the rays (a sparse 7.5 Hz
+walk whose first guess held the known rates: 0.099 against 0.25 frame; docs/method.md, "Stream
+clocks")."""
 REACH = 8
 """A stream that the fit moves this many frame periods or more from its first guess (median over
 its images, against the others, :func:`moved_periods`) may not be pinned by the rays, or the
@@ -82,6 +88,15 @@ def sampling_interval(t: np.ndarray) -> float:
     """The median gap between the distinct times ``t`` of all streams merged: the unit of the
     knot spacings."""
     return float(np.median(np.diff(np.unique(t))))
+
+
+def merged_period(slopes: np.ndarray, inv: np.ndarray, f: np.ndarray) -> float:
+    """The streams' merged frame period: one over the sum of their frame rates, in the units of
+    ``slopes`` (every stream's time per frame); the gap between their merged times where they
+    are evenly out of phase, whatever phases a first guess gives them. ``inv`` (N,) every
+    image's stream index, ``f`` (N,) its frame."""
+    steps = np.array([np.median(np.diff(np.unique(f[inv == s]))) for s in range(slopes.size)])
+    return float(1.0 / np.sum(1.0 / (slopes * steps)))
 
 
 def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
@@ -464,7 +479,9 @@ def fit_clocks(
     held at their ratios (one start, through the first-guess times; the offsets alone fitted).
     The knots are ``spacings`` sampling intervals apart (:func:`sampling_interval`), the larger
     of the starts': at the median rate, streams filmed at other rates can fall nearly in phase
-    all along, and the gaps between their times collapse (docs/method.md, "Stream clocks").
+    all along, and the gaps between their times collapse; and at least :data:`INTERVAL_FLOOR`
+    of the streams' merged frame period, for a first guess that put them in phase itself
+    (docs/method.md, "Stream clocks").
 
     With two streams each ray's depth is seen by one other stream only, and a knot interval of
     two merged sampling intervals holds one of its frames: the spacings grow by half (doubled,
@@ -499,7 +516,8 @@ def fit_clocks(
 
     starts = [start_at(own)] if held else [start_at(np.full(k, np.median(own))), start_at(own)]
     t_init = times(starts[0])
-    interval = max(sampling_interval(times(x)) for x in starts)
+    interval = max(max(sampling_interval(times(x)) for x in starts),
+                   INTERVAL_FLOOR * merged_period(own, inv, f))
     hs = [h * interval * (1.5 if k == 2 else 1.0) for h in spacings]
     period = _reference_period(t0, inv, f)
     h_mid = hs[len(hs) // 2]
