@@ -10,7 +10,7 @@ import pytest
 
 from dloe_sfm.calibration import import_calibration
 from dloe_sfm.colmap import load_workspace
-from dloe_sfm.core.capture import Capture
+from dloe_sfm.core.capture import Capture, pixel_rays, project
 from dloe_sfm.core.multitarget import (
     aggregate,
     associate,
@@ -143,6 +143,20 @@ def test_pose2sim_trial_made_asynchronous_is_one_subject_and_one_event(shared_di
     assignment = associate(cap, options)
     assert assignment.max() == 0 and (assignment[:, 0] == 0).all()
     assert (assignment[:, 1] == -1).all() and np.isfinite(cap.x[:, 1]).any(axis=(1, 2)).sum() == 50
+    # why: triangulated from cameras 1 and 2 it stands outside the views of cameras 3 and 4
+    rays = pixel_rays(cap.x[:, 1], cap.K, cap.R)
+    seen = np.isfinite(rays).all(axis=2)
+    joints = []
+    for j in np.flatnonzero(seen.sum(axis=0) >= 2):
+        r = rays[seen[:, j], j]
+        Q = np.eye(3) - r[:, :, None] * r[:, None, :]
+        joints.append(np.linalg.solve(Q.sum(axis=0), np.einsum("nij,nj->i", Q, cap.C[seen[:, j]])))
+    where = np.median(joints, axis=0)
+    for stream in range(4):
+        i = np.flatnonzero(cap.stream_ids == stream)[0]
+        u = project(where[None, None], cap.K[i:i + 1], cap.R[i:i + 1], cap.C[i:i + 1])[0, 0]
+        inside = 0 <= u[0] <= 1088 and 0 <= u[1] <= 1920
+        assert inside == (stream < 2), (stream, u)
     merged = aggregate(cap, assignment)
     assert np.unique(initial_events(merged, options, initialise(merged, options))).size == 1
     # were the still person a subject, it would not split the main person's event
