@@ -77,6 +77,18 @@ def test_a_subject_seen_by_some_streams_does_not_split_the_event(two_people) -> 
     assert np.unique(initial_events(merged, options, X0)).size == 2  # the columns as one shape
 
 
+def test_a_subject_of_one_stream_links_no_images(two_people) -> None:
+    """A subject one stream sees (a stray cluster kept where it was its image's only detection)
+    has no graph of its own; the other subject's links the images."""
+    cap, truth = two_people
+    x = cap.x.copy()
+    x[np.flatnonzero(cap.stream_ids == 0)[2:], 1] = np.nan
+    x[cap.stream_ids > 0, 1] = np.nan
+    merged = aggregate(replace(cap, x=x), truth)
+    options = Options()
+    assert np.unique(initial_events(merged, options, initialise(merged, options), 2)).size == 1
+
+
 def test_one_image_with_an_extra_detection_adds_no_subject(two_people) -> None:
     """One image's first person split into two partial skeletons (a third detection) is not a
     third person: the count is the most detections 8 images hold, and the extra partial

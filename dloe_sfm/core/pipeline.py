@@ -12,6 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .bias import GAIN, stream_offsets, without_offsets
 from .capture import Capture
@@ -110,20 +111,24 @@ def initial_events(
     several ``subjects`` (columns s P .. s P + P - 1 are subject s) it is the sum of every
     subject's graph over the images that see it: two images are compared only on a subject
     both see, never on the values the initial shapes filled in where one is unseen (those tie
-    each image to the images that miss the same subjects). An event seen by fewer than two
-    streams cannot be triangulated; it joins the largest event.
+    each image to the images that miss the same subjects); a subject with an image no other
+    stream's views at ``min_ray_angle`` links none (and with no subject left, the whole shapes
+    link the images). An event seen by fewer than two streams cannot be triangulated; it joins
+    the largest event.
     """
-    if subjects == 1:
-        W_var = shape_space_graph(capture, options, X_world)
-    else:
-        n, p = capture.num_images, capture.num_points // subjects
-        pieces = []
-        for cols in np.arange(subjects * p).reshape(subjects, p):
+    n, p = capture.num_images, capture.num_points // subjects
+    pieces = []
+    if subjects > 1:
+        for k, cols in enumerate(np.arange(subjects * p).reshape(subjects, p)):
             idx = np.flatnonzero(capture.visible[:, cols].any(axis=1))
             one = replace(capture.subset(idx), x=capture.x[idx][:, cols],
                           confidence=capture.weights[idx][:, cols], symmetric_pairs=None)
-            pieces.append(parts(shape_space_graph(one, options, X_world[idx][:, cols]), idx))
-        W_var = assemble(pieces, n)
+            try:
+                pieces.append(parts(shape_space_graph(one, options, X_world[idx][:, cols]), idx))
+            except InputError:  # an image of it no other stream views at an angle: it links none
+                logger.debug("events: subject %d links no images (too few views)", k)
+    # one subject, or none whose images other streams view: the images' whole shapes
+    W_var = assemble(pieces, n) if pieces else shape_space_graph(capture, options, X_world)
     labels = segment_events(W_var, capture.stream, capture.frame)
     sizes = np.bincount(labels)
     for e in range(labels.max() + 1):
