@@ -31,6 +31,7 @@ from .columns import (
 )
 from .core.bias import per_stream
 from .core.capture import Capture, project
+from .core.multitarget import detection_confidence
 from .core.result import Result
 from .core.sync import (
     Fps,
@@ -80,21 +81,26 @@ def error_stats(errors: np.ndarray) -> dict[str, float | int | None]:
     }
 
 
-def detection_subjects(capture: Capture, result: Result) -> np.ndarray | None:
+def detection_subjects(capture: Capture, result: Result
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
     """(N, M') subject of each detection of every image, in the order of the image's keypoint
     list up to its last detection used (-1: not used, e.g. too few points or a stray), from
-    ``result.assignment``; None for one subject. ``capture`` is the solver's input: without
+    ``result.assignment``, and how surely (``multitarget.detection_confidence``; NaN: not
+    used); None for one subject. ``capture`` is the solver's input: without
     ``image_ids["detection_index"]`` (``observations.build_capture``) its slot order is the
     list's."""
     if result.assignment is None:
         return None
+    confidence = detection_confidence(capture, result.assignment, result)
     index = capture.image_ids.get("detection_index")
     if index is None or index.shape != result.assignment.shape:
-        return result.assignment.astype(np.int64)
+        return result.assignment.astype(np.int64), confidence
     out = np.full((len(index), int(index.max()) + 1), -1, dtype=np.int64)
+    sure = np.full(out.shape, np.nan)
     rows, slots = np.nonzero(index >= 0)
     out[rows, index[rows, slots]] = result.assignment[rows, slots]
-    return out
+    sure[rows, index[rows, slots]] = confidence[rows, slots]
+    return out, sure
 
 
 def write_point_cloud(path: Path, xyz: np.ndarray, *, colors: np.ndarray | None = None,
@@ -181,6 +187,17 @@ def _subject_summaries(capture: Capture, result: Result, errors: np.ndarray,
             "reprojection_error_px": error_stats(errors[:, columns]),
         })
     return summaries
+
+
+def _left_out_report(capture: Capture, result: Result) -> dict:
+    """``detections_left_out`` of a several-detection solve: the detections of the solver's
+    input ``capture`` no subject took (``multitarget.associate``: they support none), their
+    count and images; {} otherwise."""
+    if result.assignment is None or capture.x.ndim != 4:
+        return {}
+    img, _ = np.nonzero(capture.visible.any(axis=2) & (result.assignment < 0))
+    return {"detections_left_out": {"count": int(img.size),
+                                    "images": capture.image_names[np.unique(img)].tolist()}}
 
 
 def _robust_report(capture: Capture, result: Result, subject_id: np.ndarray,
@@ -292,7 +309,8 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     ``capture`` is the solver's input; the observations written and scored are those of
     ``solved_capture``. With several subjects, column k of X is point ``result.point_id[k]`` of
     subject ``result.subject_id[k]``: frames carry both ids, skeletons repeat per subject, and
-    trajectories.npz has ``detection_subject`` (``detection_subjects``). static_xyz (M, 3)
+    trajectories.npz has ``detection_subject`` and ``detection_confidence``
+    (``detection_subjects``). static_xyz (M, 3)
     float, static_rgb (M, 3) uint8: COLMAP's static points. ``report`` entries (inputs,
     parameters, stage timings, ...) are merged into ``report.json``. TRC / C3D / wide CSV:
     ``mocap_export.write_mocap`` (``export_rate`` samples per reference frame; markers
@@ -302,6 +320,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
     report's ``sync``. Returns the report.
     """
     detection_subject = detection_subjects(capture, result)
+    left_out = _left_out_report(capture, result)
     capture = solved_capture(capture, result)
     _check_shapes(capture, result)
     folder = Path(folder)
@@ -363,7 +382,9 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
                 {"supported": result.supported, "depth_sd": result.depth_sd,
                  "image_status": result.image_status.astype(str)}),
              **({"subject_id": subject_id, "point_id": point_id} if subjects else {}),
-             **({} if detection_subject is None else {"detection_subject": detection_subject}))
+             **({} if detection_subject is None else
+                {"detection_subject": detection_subject[0],
+                 "detection_confidence": detection_subject[1]}))
 
     with open(folder / "trajectories.csv", "w", newline="") as f:
         writer = csv.writer(f)
@@ -444,6 +465,7 @@ def write_outputs(folder: Path, capture: Capture, result: Result, *,
         "mocap_export": mocap,
         "time_unit": sync["time_unit"],
         "sync": sync,
+        **left_out,
         **robust,
         **offsets,
     }
@@ -497,8 +519,10 @@ def export_outputs(out: Path | str, capture: Capture, result: Result, *,
     if error["mean"] is not None:
         logger.info("mean reprojection error %.3f px (median %.3f) over %d observations",
                     error["mean"], error["median"], error["count"])
-    logger.info("%d subject(s); robust loss: %d observation(s) down-weighted, %d left/right "
+    left_out = summary.get("detections_left_out", {}).get("count", 0)
+    logger.info("%d subject(s)%s; robust loss: %d observation(s) down-weighted, %d left/right "
                 "swap(s) fixed (report.json)", summary["subjects"],
+                f", {left_out} detection(s) supporting none left out" if left_out else "",
                 summary["downweighted"]["count"], summary["swaps_fixed"]["count"])
     if summary["stream_offsets"]["count"]:
         logger.info("detector offsets taken out: %d (stream, point) pairs, median %.2f px "

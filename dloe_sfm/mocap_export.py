@@ -12,15 +12,15 @@ frame per image). Events are never bridged: a later event keeps its gap to the p
 when both are timed by the same stream, else it is placed two of its frames after it.
 
 TRC and C3D hold the points on a uniform time grid (default: the fastest stream's rate),
-linearly interpolated between a point's observations that are at most 1.5 frame periods of
-the event's slowest stream apart, empty elsewhere. Where the frame rate of every event's
-reference stream is known and the same (``--fps``: the rate of its frame numbers), the three
-files are in seconds: time over that rate, TRC ``DataRate`` / ``CameraRate`` and C3D
-``POINT:RATE`` in Hz (the grid's samples per frame times it); else in reference frames, rates
-in samples per frame. Positions are in mm, taken from the model's
-units as metres (the calibration import and the simulator work in metres), in the model's
-frame as it is (not rotated to OpenSim's y-up).
-"""
+linearly interpolated between a point's observations that are at most 1.5 image periods of the
+event's slowest stream apart (its frame period times its median step in frame numbers: a stream
+that keeps every 4th frame samples every 4 periods), empty elsewhere. Where the frame rate of
+every event's reference stream is known and the same (``--fps``: the rate of its frame numbers),
+the three files are in seconds: time over that rate, TRC ``DataRate`` / ``CameraRate`` and C3D
+``POINT:RATE`` in Hz (the grid's samples per frame times it); else in reference frames, rates in
+samples per frame. Positions are in mm, taken from the model's units as metres (the calibration
+import and the simulator work in metres), in the model's frame as it is (not rotated to
+OpenSim's y-up)."""
 
 from __future__ import annotations
 
@@ -42,8 +42,8 @@ logger = logging.getLogger("dloe_sfm")
 MM_PER_UNIT = 1000.0
 """Millimetres per model unit (the model's units are taken as metres)."""
 MAX_GAP_PERIODS = 1.5
-"""Longest interpolated gap between two observations of a point, in frame periods of the
-event's slowest stream."""
+"""Longest interpolated gap between two observations of a point, in image periods of the
+event's slowest stream (frame period times median frame step)."""
 EVENT_GAP_FRAMES = 2.0
 """Separation of events whose relative timing is unknown, in reference frames."""
 MAX_POINT_SAMPLES = 10**7
@@ -192,11 +192,14 @@ def image_times(capture: Capture, result: Result) -> Timeline:
                 t = _rank_times(streams, frames, ref)
         if t is None:
             t, ref = np.arange(idx.size, dtype=np.float64), None
-            event_periods = [1.0]
+            event_periods, steps = [1.0], [1.0]
         else:
             slopes = [float(np.polyfit(frames[streams == s], t[streams == s], 1)[0])
                       for s in videos]
             event_periods = [p for p in slopes if p > 0] or [1.0]
+            # a stream that keeps every k-th frame samples the motion every k frame periods
+            steps = [p * float(np.median(np.diff(np.sort(frames[streams == s]))))
+                     for s, p in zip(videos, slopes, strict=True) if p > 0] or [1.0]
         offset_known = (prev is not None and ref is not None and ref == prev["reference_stream"]
                         and t.min() > prev["end"])
         if prev is not None and not offset_known:
@@ -207,7 +210,7 @@ def image_times(capture: Capture, result: Result) -> Timeline:
                 "reference_stream": None if ref is None else int(ref),
                 "start": float(t.min()), "end": float(t.max()),
                 "offset_known": bool(offset_known),
-                "max_gap": MAX_GAP_PERIODS * max(event_periods)}
+                "max_gap": MAX_GAP_PERIODS * max(steps)}
         summaries.append(prev)
     rate = 1.0 / min(periods)
     # streams within 1 % of the reference's rate: sample on the reference's frames

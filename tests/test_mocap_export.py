@@ -171,6 +171,16 @@ def test_image_times_follow_the_clock_or_the_affine_embedding(clock) -> None:
     assert event["max_gap"] == pytest.approx(1.5 * 1.02)
 
 
+def test_streams_keeping_every_4th_frame_interpolate_across_their_own_step() -> None:
+    """Cameras that keep every 4th frame of their video sample a point every 4 frame periods:
+    the gap a point is interpolated across is 1.5 of those (the asynchronous Pose2Sim trial's
+    TRC had 29 % empty rows with 1.5 frame periods)."""
+    capture, result = clocked_capture(True)
+    stepped = replace(capture, frame=4 * capture.frame)
+    (event,) = image_times(stepped, result).events
+    assert event["max_gap"] == pytest.approx(1.5 * 4 * 1.02)
+
+
 def test_rank_times_between_reference_frames_and_events_not_bridged() -> None:
     capture, result = clocked_capture(False)
     result.embedding = np.sqrt(np.arange(12.0))[np.argsort(result.order)]  # not affine

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -259,6 +260,18 @@ def test_report_lists_subjects_outliers_and_swaps(exported) -> None:
         == [(s, name) for s in (0, 1) for name in TOY.point_names]
 
 
+def test_report_counts_the_detections_left_out(exported, tmp_path, log_lines) -> None:
+    out, capture, result = exported
+    assert json.loads((out / "report.json").read_text())["detections_left_out"] == {
+        "count": 0, "images": []}  # image 7's unassigned slot is empty
+    assignment = result.assignment.copy()
+    assignment[2, 1] = -1  # a detection no subject took (multitarget.associate: a stray)
+    report = export_outputs(tmp_path / "out", capture, replace(result, assignment=assignment),
+                            layout=TOY, plots=False)
+    assert report["detections_left_out"] == {"count": 1, "images": [capture.image_names[2]]}
+    assert any(", 1 detection(s) supporting none left out;" in line for line in log_lines)
+
+
 def test_several_subjects_need_the_solved_capture(tmp_path) -> None:
     capture, result = two_subjects()
     result.solved = None
@@ -301,6 +314,10 @@ def test_stage_exports_people_of_a_workspace(ws, tmp_path) -> None:
     # detection_subject follows the files' person order, not the capture's (largest first)
     with np.load(out / "trajectories.npz") as data:
         detection_subject = data["detection_subject"]
+        confidence = data["detection_confidence"]
+    assert confidence.shape == detection_subject.shape
+    assert ((confidence >= 0) & (confidence <= 1))[detection_subject >= 0].all()
+    assert np.isnan(confidence[detection_subject < 0]).all()
     for i, name in enumerate(capture.image_names):
         with open(folder / f"{Path(name).stem}_keypoints.json") as f:
             people = [np.reshape(q["pose_keypoints_2d"], (p, 3))[:, :2]

@@ -51,13 +51,24 @@ def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
     return proxies, source, slot
 
 
+MIN_IMAGES = 8
+"""Fewest images whose detections make a subject; also how many images must hold k detections
+for the capture to be taken as showing k people (one image with an extra detection, a person
+split into two partial skeletons, is no extra person)."""
+MIN_VIEWS = 3
+"""Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
+view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
+a reflection)."""
+
+
 def constrained_clusters(
     F: np.ndarray, group: np.ndarray, k: int, *, max_iterations: int = 100
 ) -> np.ndarray:
     """k-means of the rows of F (N', d) where rows of one ``group`` take distinct clusters.
 
     Seeds: the rows of the first group with k members (else farthest-point seeding); the
-    assignment step solves one small assignment problem per group.
+    assignment step solves one small assignment problem per group; the rows of a group of
+    more than k that lose it are -1.
     """
     groups = [np.flatnonzero(group == g) for g in np.unique(group)]
     full = next((g for g in groups if g.size == k), None)
@@ -72,7 +83,7 @@ def constrained_clusters(
     labels = np.full(F.shape[0], -1)
     for _ in range(max_iterations):
         cost = ((F[:, None, :] - centres[None]) ** 2).sum(axis=2)
-        new = np.empty_like(labels)
+        new = np.full_like(labels, -1)
         for g in groups:
             rows, cols = linear_sum_assignment(cost[g])
             new[g[rows]] = cols
@@ -85,27 +96,44 @@ def constrained_clusters(
     return labels
 
 
+def subject_count(source: np.ndarray) -> int:
+    """The number of people a capture shows: the most detections that at least ``MIN_IMAGES``
+    images hold (all its images, when it has fewer); ``source`` (N',): each detection's image."""
+    held = np.sort(np.bincount(source)[np.unique(source)])[::-1]
+    return int(held[min(MIN_IMAGES, held.size) - 1])
+
+
 def associate(capture: Capture, options: Options) -> np.ndarray:
     """Steps 1-3: (N, M) subject of every detection (-1: none), subjects numbered by first image.
 
-    The number of subjects is the most detections any image has. A subject with fewer than 8
-    images, or seen by one stream only, is a stray detection: it is dropped, except where it is
-    its image's only detection.
+    The number of subjects is :func:`subject_count`; with one, each image keeps its detection
+    of the largest total score. A subject needs ``MIN_IMAGES`` images and ``MIN_VIEWS`` streams
+    (all the capture's, when it has fewer); the detections of a cluster short of either support
+    nobody and are left out (logged), except where one is its image's only detection. A capture
+    in which no cluster passes keeps them all.
     """
     proxies, source, slot = proxy_capture(capture)
-    k = int(np.bincount(source).max())
+    k = subject_count(source)
     assignment = np.full(capture.x.shape[:2], -1)
     if k == 1:
-        assignment[source, slot] = 0
+        best = np.argmax(capture.weights.sum(axis=2), axis=1)
+        img = np.unique(source)
+        assignment[img, best[img]] = 0
         return assignment
     W = shape_space_graph(proxies, options, initialise(proxies, options))
     F = cluster_coordinates(W, k)
     labels = constrained_clusters(F, source, k)
     streams = capture.stream_ids[source]
+    views = min(MIN_VIEWS, np.unique(capture.stream_ids).size)
     lonely = np.bincount(source)[source] == 1
-    stray = [c for c in range(k) if (labels == c).sum() < 8
-             or np.unique(streams[labels == c]).size < 2]
+    seen = [(int(np.unique(source[labels == c]).size), int(np.unique(streams[labels == c]).size))
+            for c in range(k)]
+    stray = [c for c in range(k) if seen[c][0] < MIN_IMAGES or seen[c][1] < views]
     if len(stray) < k:  # a capture too small for any subject to pass keeps them all
+        for c in stray:
+            logger.warning("%d detection(s) support no subject (in %d image(s), seen by %d "
+                           "stream(s); a subject needs %d images and %d streams): left out",
+                           int(((labels == c) & ~lonely).sum()), *seen[c], MIN_IMAGES, views)
         labels[np.isin(labels, stray) & ~lonely] = -1
     ranked = sorted(np.unique(labels[labels >= 0]), key=lambda c: np.argmax(labels == c))
     remap = np.full(k, -1)
@@ -135,26 +163,62 @@ def aggregate(capture: Capture, assignment: np.ndarray) -> Capture:
     )
 
 
+CAP_PX = 50.0
+"""Largest pixel distance one point adds to a detection's fit to a subject (a wrong or swapped
+point does not decide it)."""
+
+
+def prediction_distances(capture: Capture, subjects: int, result: Result) -> np.ndarray:
+    """(N, M, S, P) pixel distance of every detected point to each subject's graph prediction
+    (``W X``, from the other images); NaN where the point is not detected."""
+    n, m, p = capture.x.shape[:3]
+    X_pred = predicted(result.W, result.X).reshape(n, subjects, p, 3)
+    x_hat = np.stack(
+        [project(X_pred[:, k], capture.K, capture.R, capture.C) for k in range(subjects)], axis=1
+    )
+    d = np.linalg.norm(capture.x[:, :, None] - x_hat[:, None], axis=-1)
+    return np.where(capture.visible[:, :, None, :], np.nan_to_num(d, nan=CAP_PX), np.nan)
+
+
+def fit_costs(capture: Capture, assignment: np.ndarray, result: Result) -> np.ndarray:
+    """(N, M, S) mean pixel distance of every detection to each subject's graph prediction
+    (``prediction_distances``), each point's capped at ``CAP_PX``; 0 where none seen."""
+    d = prediction_distances(capture, int(assignment.max()) + 1, result)
+    seen = np.isfinite(d)
+    cost = np.where(seen, np.minimum(d, CAP_PX), 0.0).sum(axis=-1)
+    return cost / np.maximum(seen.sum(axis=-1), 1)
+
+
 def reassociate(capture: Capture, assignment: np.ndarray, result: Result) -> np.ndarray:
     """(N, M) assignment matched again to the solution: each image's assigned detections go to
-    the subjects whose graph prediction (``W X``, from the other images) they fit best, by the
-    mean pixel distance over their points (each capped at 50 px), one subject per detection."""
-    n, m, p = capture.x.shape[:3]
-    s = int(assignment.max()) + 1
-    X_pred = predicted(result.W, result.X).reshape(n, s, p, 3)
-    x_hat = np.stack(
-        [project(X_pred[:, k], capture.K, capture.R, capture.C) for k in range(s)], axis=1
-    )
-    d = np.linalg.norm(capture.x[:, :, None] - x_hat[:, None], axis=-1)  # (N, M, S, P)
-    vis = capture.visible[:, :, None, :]
-    cost = np.where(vis, np.minimum(np.nan_to_num(d, nan=50.0), 50.0), 0.0).sum(axis=-1)
-    cost /= np.maximum(vis.sum(axis=-1), 1)
+    the subjects whose graph prediction they fit best (``fit_costs``), one subject per
+    detection."""
+    cost = fit_costs(capture, assignment, result)
     out = assignment.copy()
-    for i in range(n):
+    for i in range(capture.num_images):
         dets = np.flatnonzero(assignment[i] >= 0)
         rows, cols = linear_sum_assignment(cost[i, dets])
         out[i, dets[rows]] = cols
     return out
+
+
+def detection_confidence(capture: Capture, assignment: np.ndarray, result: Result
+                         ) -> np.ndarray:
+    """(N, M) how surely each assigned detection is its subject's, in [0, 1] (NaN: unassigned):
+    1 - its median point distance to its subject's graph prediction over that to the nearest
+    other subject's (``prediction_distances``). 1: on its subject's prediction (and always
+    with one subject: there is no other to take it for); 0: as near another subject's."""
+    s = int(assignment.max()) + 1
+    confidence = np.where(assignment >= 0, 1.0, np.nan)
+    if s < 2:
+        return confidence
+    with np.errstate(all="ignore"):  # all-NaN slices: detections of no point
+        d = np.nanmedian(prediction_distances(capture, s, result), axis=-1)  # (N, M, S)
+    mine = np.maximum(assignment, 0)[..., None]
+    own = np.take_along_axis(d, mine, axis=2)[..., 0]
+    others = np.where(np.arange(s) == mine, np.inf, d).min(axis=2)
+    ratio = np.clip(1.0 - own / np.maximum(others, 1e-12), 0.0, 1.0)
+    return np.where(assignment >= 0, ratio, np.nan)
 
 
 def reconstruct_subjects(
@@ -178,7 +242,7 @@ def reconstruct_subjects(
                 capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
     for it in range(rounds):
         merged = aggregate(capture, assignment)
-        result = solve_single(merged.validate("aggregated subjects"), options, progress)
+        result = solve_single(merged.validate("aggregated subjects"), options, progress, s)
         if s == 1 or it == rounds - 1:
             break
         new = reassociate(capture, assignment, result)

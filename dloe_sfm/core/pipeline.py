@@ -12,6 +12,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from .alternation import Progress, held_out_px, middle_window, soft_ray_weight, solve_event
 from .bias import GAIN, stream_offsets, without_offsets
 from .capture import Capture
@@ -55,7 +56,7 @@ graph's, not the detector's: none of that image's observations is dropped
 
 
 def solve_single(
-    capture: Capture, options: Options, progress: Progress | None = None
+    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
 ) -> Result:
     """Estimate every image's 3D points and the images' temporal graph and order (one subject).
 
@@ -65,12 +66,13 @@ def solve_single(
     solution's residuals and the capture re-solved (:func:`robust_rounds`). Unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
     streams' fitted clocks (:func:`clocked`; with ``auto`` only where they predict held-out
-    detections about as well as the graph, :func:`clocks_predict`)."""
+    detections about as well as the graph, :func:`clocks_predict`). ``subjects``: the people
+    whose points the capture's columns hold (``multitarget.aggregate``), for the events."""
     started = time.perf_counter()
     X_world = initialise(capture, options)
     labels = np.zeros(capture.num_images, dtype=np.int64)
     if options.segment_events:
-        labels = initial_events(capture, options, X_world)
+        labels = initial_events(capture, options, X_world, subjects)
     init_seconds = time.perf_counter() - started
     result = solve_events(capture, options, labels, X_world, progress)
     result, solved = robust_rounds(capture, options, labels, result, progress)
@@ -105,14 +107,34 @@ def shape_space_graph(capture: Capture, options: Options, X_world: np.ndarray) -
     )
 
 
-def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
+def initial_events(
+    capture: Capture, options: Options, X_world: np.ndarray, subjects: int = 1
+) -> np.ndarray:
     """(N,) event labels from the shape-space W of the initial shapes (``shape_space_graph``).
 
     The graph is W_var alone: the chain prior would tie the last image of one event to the
-    first of the next in every stream (and time-line candidates would bridge events). An event
-    seen by fewer than two streams cannot be triangulated; it joins the largest event.
+    first of the next in every stream (and time-line candidates would bridge events). With
+    several ``subjects`` (columns s P .. s P + P - 1 are subject s) it is the sum of every
+    subject's graph over the images that see it: two images are compared only on a subject
+    both see, never on the values the initial shapes filled in where one is unseen (those tie
+    each image to the images that miss the same subjects); a subject with an image no other
+    stream's views at ``min_ray_angle`` links none (and with no subject left, the whole shapes
+    link the images). An event seen by fewer than two streams cannot be triangulated; it joins
+    the largest event.
     """
-    W_var = shape_space_graph(capture, options, X_world)
+    n, p = capture.num_images, capture.num_points // subjects
+    pieces = []
+    if subjects > 1:
+        for k, cols in enumerate(np.arange(subjects * p).reshape(subjects, p)):
+            idx = np.flatnonzero(capture.visible[:, cols].any(axis=1))
+            one = replace(capture.subset(idx), x=capture.x[idx][:, cols],
+                          confidence=capture.weights[idx][:, cols], symmetric_pairs=None)
+            try:
+                pieces.append(parts(shape_space_graph(one, options, X_world[idx][:, cols]), idx))
+            except InputError:  # an image of it no other stream views at an angle: it links none
+                logger.debug("events: subject %d links no images (too few views)", k)
+    # one subject, or none whose images other streams view: the images' whole shapes
+    W_var = assemble(pieces, n) if pieces else shape_space_graph(capture, options, X_world)
     labels = segment_events(W_var, capture.stream, capture.frame, shapes=X_world)
     sizes = np.bincount(labels)
     for e in range(labels.max() + 1):
