@@ -7,6 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ..errors import InputError
 from ..evaluate import evaluate, evaluate_output
 from ..io import (
     atomic_path,
@@ -16,6 +17,7 @@ from ..io import (
     load_truth,
     without_empty_images,
 )
+from ..truth import FILE_KEYS, PER_IMAGE
 
 
 def main(result: Path, capture: Path, *, references: bool = True, out: Path | None = None) -> dict:
@@ -27,10 +29,17 @@ def main(result: Path, capture: Path, *, references: bool = True, out: Path | No
     if Path(result).is_dir():
         scores = evaluate_output(result, capture)
     else:
-        cap, kept = without_empty_images(load_capture(capture, validate=False).validate(
-            str(capture), empty_images=True), capture)
-        scores = evaluate(cap, load_truth(capture).subset(kept), load_result(result),
-                          references=references)
+        full = load_capture(capture, validate=False).validate(str(capture), empty_images=True)
+        cap, kept = without_empty_images(full, capture)
+        truth = load_truth(capture)
+        if kept.size < full.num_images:
+            for name, key in FILE_KEYS.items():
+                value = getattr(truth, name)
+                if name in PER_IMAGE and value is not None and len(value) != full.num_images:
+                    raise InputError(f"{capture}: ground-truth key '{key}' has {len(value)} "
+                                     f"rows for {full.num_images} images")
+            truth = truth.subset(kept)
+        scores = evaluate(cap, truth, load_result(result), references=references)
     if out is not None:
         with atomic_path(out) as tmp:
             tmp.write_text(json.dumps(scores, indent=2))
