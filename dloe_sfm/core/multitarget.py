@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -212,7 +213,8 @@ def detection_confidence(capture: Capture, assignment: np.ndarray, result: Resul
     confidence = np.where(assignment >= 0, 1.0, np.nan)
     if s < 2:
         return confidence
-    with np.errstate(all="ignore"):  # all-NaN slices: detections of no point
+    with warnings.catch_warnings():  # all-NaN slices: detections of no point
+        warnings.simplefilter("ignore", RuntimeWarning)
         d = np.nanmedian(prediction_distances(capture, s, result), axis=-1)  # (N, M, S)
     mine = np.maximum(assignment, 0)[..., None]
     own = np.take_along_axis(d, mine, axis=2)[..., 0]
