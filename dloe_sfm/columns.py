@@ -55,10 +55,11 @@ def column_ids(result: Result) -> tuple[np.ndarray, np.ndarray]:
 
 def column_labels(result: Result, point_names: list[str] | None) -> list[str]:
     """(P',) label of every column of ``result.X``: its layout point's name in ``point_names``
-    (the point id without), ``s<subject>_`` before it with several subjects."""
+    (the point id without), ``s<subject>_`` before it with several subjects (one subject found
+    among several people's detections keeps the plain names: OpenSim's marker set)."""
     subject_id, point_id = column_ids(result)
     names = [str(j) if point_names is None else point_names[j] for j in point_id]
-    if result.subject_id is None:
+    if result.subject_id is None or np.unique(subject_id).size < 2:
         return names
     return [f"s{k}_{name}" for k, name in zip(subject_id, names, strict=True)]
 

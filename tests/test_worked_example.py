@@ -13,7 +13,7 @@ REPO = Path(__file__).resolve().parents[1]
 IMPORT = ("import-calibration assets/pose2sim_trial/calibration/Calib.qca.txt --format qualisys "
           "--keypoints assets/pose2sim_trial/pose --out ws/sparse/0")
 RECONSTRUCT = ("reconstruct ws --keypoints assets/pose2sim_trial/pose --format openpose --fps 60 "
-               "--person largest --out out")
+               "--out out")
 
 
 def readme_commands() -> list[str]:
@@ -50,4 +50,5 @@ def test_worked_example_runs_and_its_trc_reads_back(tmp_path, monkeypatch) -> No
     assert data.shape == (int(frames), 2 + 3 * 25)
     assert np.allclose(np.diff(data[:, 1]), 1 / 60)  # Time in seconds
     assert header[3].split()[2:4] == ["Nose", "LEye"]
-    assert np.isfinite(data[:, 2:]).any(axis=1).sum() >= 10
+    # issue 39: at most 20 % of the rows empty (the gaps are counted in image periods)
+    assert np.isfinite(data[:, 2:]).any(axis=1).sum() >= 0.8 * int(frames)
