@@ -56,6 +56,14 @@ def test_runtime_clip_too_short(tmp_path) -> None:
         benchmark.main("runtime", out=tmp_path, sizes=[100000])
 
 
+def test_streams_suite_sizes(tmp_path) -> None:
+    # issue 38's many-camera sizes; the bundled 3.5 s clip holds only the --quick ones
+    assert benchmark.STREAMS_SIZES[0] == ((11_000, 16, 30.0), (10_000, 64, 6.5))
+    with pytest.raises(benchmark.InputError,
+                       match=r"10000 images need 24\.0 s at 64 streams of 6\.5 Hz \(--data"):
+        benchmark.main("streams", out=tmp_path)
+
+
 def test_unknown_suite(tmp_path) -> None:
     with pytest.raises(benchmark.InputError, match="unknown suite"):
         benchmark.main("speed", out=tmp_path)

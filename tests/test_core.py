@@ -9,11 +9,18 @@ from scipy.sparse.csgraph import connected_components
 
 from dloe_sfm.core import steps
 from dloe_sfm.core.capture import Capture, project
-from dloe_sfm.core.init import pseudo_triangulate
+from dloe_sfm.core.init import (
+    PARTNER_STREAMS,
+    _candidates,
+    _Pairs,
+    partner_streams,
+    pseudo_triangulate,
+)
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.problem import build_problem, initialise
 from dloe_sfm.core.sequencing import (
     BACKBONE_NEIGHBOURS,
+    REFERENCE_STREAMS,
     affine_time,
     arc_distance,
     backbone_embedding,
@@ -24,6 +31,7 @@ from dloe_sfm.core.sequencing import (
     neighbour_graph,
     order_from_embedding,
     orient,
+    place_on_streams,
 )
 from dloe_sfm.core.simplex_qp import solve_simplex_qp
 from dloe_sfm.core.solver import reconstruct
@@ -281,6 +289,55 @@ def test_affine_time_holds_known_frame_rates(assets_dir):
     a, b = np.polyfit(t, sim.t, 1)
     off = (a * t + b - sim.t) * cap.fps  # own frames
     assert max(abs(np.median(off[cap.stream == s])) for s in np.unique(cap.stream)) < 1.5
+
+
+def ring_streams(num: int, frames: int = 10) -> tuple[Capture, np.ndarray]:
+    """``num`` static cameras on a ring filming a point on a helix, each ``frames`` frames at
+    one rate from starts k / num of a period: (capture, true times)."""
+    K, R, C = ring_cameras(np.zeros(3), num=num, radius=3.0)
+    stream = np.repeat(np.arange(num), frames)
+    frame = np.tile(np.arange(frames), num)
+    t = frame + stream / num
+    X = np.stack([0.3 * np.cos(t / 3), 0.3 * np.sin(t / 3), 0.05 * t], axis=1)[:, None]
+    x = project(X, K[stream], R[stream], C[stream])
+    return Capture(x=x, K=K[stream], R=R[stream], C=C[stream], stream=stream, frame=frame), t
+
+
+def test_stream_pairs_grow_linearly_with_the_streams():
+    """Every stream is placed on the reference streams and they on it, and an image's partner
+    is sought in a bounded number of streams: the placements and the scored image pairs grow
+    as the images, not as the images times the streams, and the clocks stay right."""
+    for num in (8, 24, 48):
+        cap, t = ring_streams(num)
+        n = cap.num_images
+        X = initialise(cap, Options())
+        pl = place_on_streams(X, cap.stream_ids, cap.frame)
+        placements = sum(placed.size for placed in pl.placed)
+        if num <= REFERENCE_STREAMS:
+            assert placements == num * n  # every stream on every other
+        else:
+            # the references hold every image, the others their own and the references'
+            others = num - REFERENCE_STREAMS
+            assert placements == REFERENCE_STREAMS * n + others * (REFERENCE_STREAMS + 1) * 10
+        clock = affine_time(X, cap.stream_ids, cap.frame, pl)
+        a, b = np.polyfit(clock, t, 1)
+        assert np.abs(a * clock + b - t).max() < 1.0  # frames (8 streams, all pairs: 0.37)
+        pairs = _Pairs(cap.rays(), cap.C, cap.stream_ids, np.cos(np.deg2rad(15.0)))
+        scored = sum(rows.size for rows, _ in _candidates(pairs, cap.stream_ids, cap.frame, 64))
+        assert scored <= 3 * min(PARTNER_STREAMS, num - 1) * n
+
+
+def test_partner_streams_are_the_most_convergent_views():
+    cap, _ = ring_streams(16, frames=3)
+    members = [np.flatnonzero(cap.stream == s) for s in range(16)]
+    rays = np.moveaxis(np.nan_to_num(cap.rays()), 2, 0)
+    partners = partner_streams(rays, members)
+    for s, near in enumerate(partners):
+        assert near.size == PARTNER_STREAMS and (np.diff(near) > 0).all()
+        # the ring's cameras 90 degrees away first, then 67.5 and 112.5; never itself
+        assert {(s + 4) % 16, (s + 12) % 16, (s + 3) % 16, (s + 5) % 16} <= set(near)
+        assert s not in near and (s + 8) % 16 not in near and (s + 1) % 16 not in near
+    assert [near.size for near in partner_streams(rays, members[:5])] == [4] * 5
 
 
 def test_arc_distance_separates_repetitions():

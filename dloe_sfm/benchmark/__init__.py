@@ -8,6 +8,8 @@ Suites (``dloe-sfm benchmark SUITE``, :func:`main`):
   on the pseudo-triangulated and on the DLOE shapes (the paper's Table 1).
 - ``ablation``: DLOE without the S, T or R term at moderate and high noise.
 - ``runtime``: time per iteration and per step, and peak memory, against the number of images.
+- ``streams``: the same for many cameras (:data:`.suites.STREAMS_SIZES`: 11 000 images from 16
+  streams, 10 000 from 64).
 
 Every suite writes ``results.json`` (every run, settings, seeds, machine, git commit),
 ``table.md`` and ``<suite>.png`` to ``outputs/benchmark/<suite>/``.
@@ -53,14 +55,15 @@ from .suites import (
     RUNTIME_MOTION,
     RUNTIME_SIZES,
     RUNTIME_STREAMS,
+    STREAMS_SIZES,
     SUITES,
     SWEEPS,
     ablation_variants,
     simulation_settings,
 )
 
-__all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "METHODS", "SUITES", "InputError", "fit_exponent",
-           "machine_info", "main"]
+__all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "METHODS", "STREAMS_SIZES", "SUITES", "InputError",
+           "fit_exponent", "machine_info", "main"]
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -86,7 +89,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     motions : motion names (``walking_1`` or file stems / paths) instead of the suite's default.
     jobs : worker processes (each single-threaded); the runtime suite always runs one at a time.
     duration : clip length in seconds (default 2.5 s ~ the paper's 300 frames, quick 1 s).
-    sizes : runtime suite: target numbers of images.
+    sizes : runtime suite: target numbers of images (the streams suite's are fixed).
     streams, rate : runtime suite: video streams (default :data:`RUNTIME_STREAMS`) and their
         frame rate (default 30 Hz); the clip must last sizes / (rate streams) seconds.
     """
@@ -99,7 +102,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     out.mkdir(parents=True, exist_ok=True)
     seeds = seeds if seeds is not None else (1 if quick else 3)
     duration = duration if duration is not None else (1.0 if quick else 2.5)
-    if suite == "runtime":
+    if suite in ("runtime", "streams"):
         motions = (motions or [RUNTIME_MOTION])[:1]
     elif motions is None:
         motions = QUICK_MOTIONS if quick else (KENDALL_MOTIONS if suite == "kendall" else MOTIONS)
@@ -136,28 +139,36 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
         table = kendall_table(summary)
         png = plot_kendall(summary, out / "kendall.png")
     else:
-        sizes = sizes or list(RUNTIME_SIZES[quick])
-        streams = streams or RUNTIME_STREAMS
-        rate = rate or 30.0
-        if streams < 2 or not 0 < rate <= 1000:
-            raise InputError(f"--streams must be 2 or more and --rate in (0, 1000], got "
-                             f"{streams} and {rate:g}")
-        per_second = streams * rate
+        if suite == "streams":
+            grid = list(STREAMS_SIZES[quick])
+        else:
+            streams = streams or RUNTIME_STREAMS
+            rate = rate or 30.0
+            if streams < 2 or not 0 < rate <= 1000:
+                raise InputError(f"--streams must be 2 or more and --rate in (0, 1000], got "
+                                 f"{streams} and {rate:g}")
+            grid = [(n, streams, rate) for n in sizes or RUNTIME_SIZES[quick]]
         seq = load_mocap(paths[0])
         clip = seq.positions.shape[0] / seq.fps
-        if max(sizes) / per_second > clip:
-            raise InputError(f"{Path(paths[0]).name} is {clip:.1f} s long: {max(sizes)} images "
-                             f"need {max(sizes) / per_second:.1f} s at {streams} streams of "
-                             f"{rate:g} Hz (--streams {math.ceil(max(sizes) / (rate * clip))} or "
-                             "more, or a higher --rate)")
+        n, streams, rate = max(grid, key=lambda size: size[0] / (size[1] * size[2]))
+        if n / (streams * rate) > clip:
+            raise InputError(f"{Path(paths[0]).name} is {clip:.1f} s long: {n} images "
+                             f"need {n / (streams * rate):.1f} s at {streams} streams of "
+                             f"{rate:g} Hz " + ("(--data: the CMU clips)" if suite == "streams"
+                                                else f"(--streams {math.ceil(n / (rate * clip))} "
+                                                "or more, or a higher --rate)"))
         specs = [{"motion": paths[0], "setting": int(n),
-                  "settings": simulation_settings(0, n / per_second, num_streams=streams,
-                                                  rate=rate)} for n in sizes]
+                  "settings": simulation_settings(0, n / (streams * rate), num_streams=streams,
+                                                  rate=rate)} for n, streams, rate in grid]
         records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
-        summary = summarise_runtime(records)
+        # the streams suite's sizes differ in their cameras: no growth against N
+        summary = summarise_runtime(records) if suite == "runtime" else {"fits": {}}
         table = runtime_table(records, summary)
-        doc.update(sizes=list(sizes), num_streams=streams, rate=rate)
-        png = plot_runtime(records, summary, out / "runtime.png")
+        if suite == "runtime":
+            doc.update(sizes=[size[0] for size in grid], num_streams=streams, rate=rate)
+        else:
+            doc.update(sizes=[list(size) for size in grid])
+        png = plot_runtime(records, summary, out / f"{suite}.png")
     doc.update(seconds=time.perf_counter() - t0, summary=summary, runs=records, table=table,
                plot=str(png))
     write_results(out, doc)

@@ -188,12 +188,13 @@ def summarise_runtime(records: list[dict]) -> dict:
 
 def runtime_table(records: list[dict], summary: dict) -> str:
     """Markdown: per size the steps per iteration, then every stage's seconds and peak-memory
-    rise, then the growth exponents."""
+    rise, then the growth exponents (if fitted)."""
     records = sorted(records, key=lambda r: r["num_images"])
-    lines = ["| N images | iterations | total s | per iteration s | W-step s/it | D-step s/it | "
-             "X-step s/it | peak RSS MB | error mm |", "|---|" + "---|" * 8]
+    lines = ["| N images | streams | iterations | total s | per iteration s | W-step s/it | "
+             "D-step s/it | X-step s/it | peak RSS MB | error mm |", "|---|" + "---|" * 9]
     for r in records:
-        lines.append(f"| {r['num_images']} | {r['nit']} | {r['seconds']:.2f} | "
+        lines.append(f"| {r['num_images']} | {r['num_streams']} | {r['nit']} | "
+                     f"{r['seconds']:.2f} | "
                      f"{r['per_iteration']:.3f} | {r['w_step_per_iteration']:.3f} | "
                      f"{r['d_step_per_iteration']:.4f} | {r['x_step_per_iteration']:.3f} | "
                      f"{r['peak_rss_mb']:.0f} | {r['error_mm']:.2f} |")
@@ -203,9 +204,10 @@ def runtime_table(records: list[dict], summary: dict) -> str:
         lines.append(f"| {r['num_images']} | " + " | ".join(
             f"{r['stage_seconds'][s]:.2f} s / {r['stage_rise_mb'][s]:.0f}" for s in STAGES)
             + " |")
-    lines.append("")
-    lines.append("Fitted growth exponents (log-log slope against N): " + ", ".join(
-        f"{k} {v['exponent']:.2f}" for k, v in summary["fits"].items()))
+    if summary["fits"]:
+        lines.append("")
+        lines.append("Fitted growth exponents (log-log slope against N): " + ", ".join(
+            f"{k} {v['exponent']:.2f}" for k, v in summary["fits"].items()))
     return "\n".join(lines)
 
 

@@ -46,7 +46,10 @@ STAGES = ("init", "events", "alternation", "robust rounds", "clocks", "sequencin
 """Stages of a solve the runtime suite times (``jobs.StageMeter``), then writing its outputs."""
 RUNTIME_STREAMS = 8
 """Streams (at 30 Hz) of the runtime suite's captures unless ``--streams`` says otherwise."""
-SUITES = [*SWEEPS, "kendall", "ablation", "runtime"]
+STREAMS_SIZES = (((11_000, 16, 30.0), (10_000, 64, 6.5)), ((1_100, 16, 30.0), (1_000, 64, 6.5)))
+"""(images, streams, Hz) of the ``streams`` suite's captures (issue 38: 11 000 images from 16
+cameras and 10^4 from 64, each within a minute), and of its ``--quick`` grid."""
+SUITES = [*SWEEPS, "kendall", "ablation", "runtime", "streams"]
 
 
 def ablation_variants(base: Options) -> dict[str, dict]:

@@ -8,6 +8,10 @@ import numpy as np
 
 from .dtw import align_many, in_blocks
 
+PARTNER_STREAMS = 7
+"""Other streams whose images an image of a stream is scored against for its partner
+(:func:`partner_streams`): every other stream up to eight streams, a bounded number beyond."""
+
 
 def closest_approach(
     C1: np.ndarray, r1: np.ndarray, C2: np.ndarray, r2: np.ndarray
@@ -84,7 +88,8 @@ def pseudo_triangulate(
     rays of the points both observe, counting only rays that meet in front of both cameras at an
     angle of at least ``min_angle`` degrees from (anti)parallel; the partner is the image with the
     smallest mean gap. Two views cannot tell times apart when the motion runs along their epipolar
-    lines, so with ``frames`` the partners in another stream of two or more images are only the
+    lines, so with ``frames`` the partners in another stream of two or more images (one of
+    :func:`partner_streams`: the most convergent views) are only the
     images within one of an order-preserving alignment of the two streams (DTW on the gaps,
     ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against every
     image. Each observed point takes the depth of the closest point on its ray to the partner's
@@ -129,13 +134,15 @@ def _candidates(
     pairs: _Pairs, streams: np.ndarray, frames: np.ndarray | None, chunk: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(rows, cols) of the image pairs to score, every image's pairs in one batch: the images
-    within one of the alignment in every other stream of 2+ images (with ``frames``), and every
-    image of another stream for the rest (lone photos, or all images without ``frames``)."""
+    within one of the alignment in each of the stream's :func:`partner_streams` (with
+    ``frames``), and every image of another stream for the rest (lone photos, or all images
+    without ``frames``)."""
     from .sequencing import stream_members
 
     n, p = pairs.vis.shape
     members = [] if frames is None else [m for m in stream_members(streams, frames)
                                          if m.size >= 2]
+    partners = partner_streams(pairs.r, members)
     aligned = np.zeros(n, dtype=bool)
     for m in members:
         aligned[m] = True
@@ -147,13 +154,11 @@ def _candidates(
         yield rows[r], everyone[c]
     paths = iter(align_many([
         (in_blocks(lambda i, j, a=a, b=b: pairs.score(a[i], b[j]), 3 * p), a.size, b.size)
-        for a in members for b in members if b is not a
+        for a, near in zip(members, partners, strict=True) for b in (members[j] for j in near)
     ]))
-    for a in members:
+    for a, near in zip(members, partners, strict=True):
         rows, cols = [], []
-        for b in members:
-            if b is a:
-                continue
+        for b in (members[j] for j in near):
             path = next(paths)
             near = np.clip(path[:, None] + np.arange(-1, 2)[None, :], 0, b.size - 1)
             keep = np.r_[near[:, 0] < near[:, 1], [True] * a.size, near[:, 2] > near[:, 1]]
@@ -163,6 +168,19 @@ def _candidates(
         rows.append(a[r])
         cols.append(rest[c])
         yield np.concatenate(rows), np.concatenate(cols)
+
+
+def partner_streams(rays: np.ndarray, members: list[np.ndarray]) -> list[np.ndarray]:
+    """The streams (indices into ``members``, ascending) whose images each stream's are
+    paired with: the :data:`PARTNER_STREAMS` others whose mean viewing directions are the most
+    convergent with its own (ties: the lower index), every other up to that many. ``rays``
+    (3, N, P) unit, 0 = unobserved."""
+    view = np.array([rays[:, m].sum(axis=(1, 2)) for m in members]).reshape(-1, 3)
+    view /= np.maximum(np.linalg.norm(view, axis=1, keepdims=True), np.finfo(float).tiny)
+    cos = np.abs(view @ view.T)
+    np.fill_diagonal(cos, np.inf)
+    near = np.argsort(cos, axis=1, kind="stable")[:, :min(PARTNER_STREAMS, len(members) - 1)]
+    return list(np.sort(near, axis=1))
 
 
 def fill_missing(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> np.ndarray:

@@ -26,6 +26,11 @@ THEIL_SEN_POINTS = 256
 BACKBONE_NEIGHBOURS = 10
 """Nearest shapes every image is linked to in the graph whose spanning tree
 :func:`backbone_embedding` follows."""
+REFERENCE_STREAMS = 8
+"""Streams (the longest) every image is placed on (:class:`Placement`); up to this many, every
+stream on every other."""
+MEDIAN_BLOCK = 2**22
+"""Numbers per temporary of :func:`arc_distance`'s medians through the reference lines."""
 MDS_SAMPLE = 2000
 """Images the length scale of the affine clocks' prior is measured on
 (``alternation.sequence``): a dense table of at most this size with videos."""
@@ -105,36 +110,63 @@ def _dtw_problem(
 
 @dataclass
 class Placement:
-    """Every image placed on every stream's polyline (streams of 2+ images) in 3D shape space.
+    """Images placed on the streams' polylines (streams of 2+ images) in 3D shape space.
 
-    ``pos[c, i]``: arc-length position of image i on polyline ``lines[c]`` (its own arc length
-    for the line's own images; order-preserving DTW for another stream's images).
+    ``placed[c]``: the images placed on polyline ``lines[c]`` (ascending), ``pos[c]`` their
+    arc-length positions on it (its own images at their own arc length, another stream's by
+    order-preserving DTW). Every image is placed on the :data:`REFERENCE_STREAMS` longest
+    lines (``full``), and their images on every line; with more streams, two others meet only
+    through the references, so the placements grow as the streams, not their square.
     """
 
     lines: list[np.ndarray]
-    pos: np.ndarray
+    placed: list[np.ndarray]
+    pos: list[np.ndarray]
+    full: np.ndarray
+
+    def table(self, images: np.ndarray) -> np.ndarray:
+        """(lines, images) positions of ``images`` on every line, NaN where not placed."""
+        out = np.full((len(self.lines), images.size), np.nan)
+        for c, (placed, pos) in enumerate(zip(self.placed, self.pos, strict=True)):
+            at = np.minimum(np.searchsorted(placed, images), placed.size - 1)
+            hit = placed[at] == images
+            out[c, hit] = pos[at[hit]]
+        return out
+
+    def on(self, c: int, images: np.ndarray) -> np.ndarray:
+        """Positions on line ``c`` of ``images``, all placed on it."""
+        return self.pos[c][np.searchsorted(self.placed[c], images)]
 
 
 def place_on_streams(X: np.ndarray, streams: np.ndarray, frames: np.ndarray) -> Placement:
-    """The DTW placements shared by :func:`arc_distance` and :func:`affine_time`."""
+    """The DTW placements shared by :func:`arc_distance` and :func:`affine_time`
+    (:class:`Placement`: on the references, and the references' images on every line)."""
     n = X.shape[0]
     F = X.reshape(n, -1)
     members = stream_members(streams, frames)
     lines = [m for m in members if m.size >= 2]
+    full = np.zeros(len(lines), dtype=bool)
+    full[np.argsort([-m.size for m in lines], kind="stable")[:REFERENCE_STREAMS]] = True
+    line_of = np.cumsum([m.size >= 2 for m in members]) - 1
+    reference = [m.size >= 2 and bool(full[c]) for m, c in zip(members, line_of, strict=True)]
     shapes = [F[m] for m in members]
-    pos = np.empty((len(lines), n))
+    placed = [[idx] for idx in lines]
+    pos = [[arc_length(F[idx])] for idx in lines]
     pairs, targets = [], []
     for c, idx in enumerate(lines):
         B = F[idx]
-        for other, A in zip(members, shapes, strict=True):
-            if other is idx:
-                pos[c, idx] = arc_length(B)
-            else:
+        for other, A, ref in zip(members, shapes, reference, strict=True):
+            if other is not idx and (full[c] or ref):
                 pairs.append((A, B))
                 targets.append((c, other))
     for (c, other), p in zip(targets, dtw_positions(pairs), strict=True):
-        pos[c, other] = p
-    return Placement(lines=lines, pos=pos)
+        placed[c].append(other)
+        pos[c].append(p)
+    placed = [np.concatenate(ims) for ims in placed]
+    order = [np.argsort(ims) for ims in placed]
+    return Placement(lines=lines, placed=[ims[o] for ims, o in zip(placed, order, strict=True)],
+                     pos=[np.concatenate(p)[o] for p, o in zip(pos, order, strict=True)],
+                     full=full)
 
 
 def arc_distance(
@@ -150,15 +182,16 @@ def arc_distance(
     Within a stream: path length of its 3D shapes between the two images. Across streams a and b:
     each image of a is placed on b's polyline by order-preserving DTW and the distance is the arc
     length between the positions (and vice versa), averaged over the directions available. Two
-    lone photos are compared through every stream's polyline (median). Without any stream of two
-    or more images this falls back to the Euclidean distance.
+    images neither of whose polylines holds the other (two lone photos, or two streams beyond
+    the references, :class:`Placement`) are compared through the reference polylines (median).
+    Without any stream of two or more images this falls back to the Euclidean distance.
     """
     subset = np.arange(X.shape[0]) if subset is None else subset
     n = subset.size
     pl = placement or place_on_streams(X, streams, frames)
     if not pl.lines:
         return euclidean_distance(X[subset])
-    pos = pl.pos[:, subset]
+    pos = pl.table(subset)
     line_of = np.full(X.shape[0], -1)
     for c, idx in enumerate(pl.lines):
         line_of[idx] = c
@@ -167,15 +200,20 @@ def arc_distance(
     cnt = np.zeros((n, n))
     for c in range(len(pl.lines)):
         on_c = line_of == c
+        there = np.isfinite(pos[c])
         dc = np.abs(pos[c][:, None] - pos[c][None, :])
-        use = on_c[:, None] | on_c[None, :]
+        use = (on_c[:, None] | on_c[None, :]) & there[:, None] & there[None, :]
         Z += np.where(use, dc, 0.0)
         cnt += use
     neither = cnt == 0
-    if neither.any():
-        med = np.median(np.abs(pos[:, :, None] - pos[:, None, :]), axis=0)
-        Z[neither] = med[neither]
-        cnt[neither] = 1
+    refs = pos[pl.full]
+    step = max(1, MEDIAN_BLOCK // (refs.shape[0] * n))
+    for lo in range(0, n, step):
+        rows = slice(lo, lo + step)
+        if neither[rows].any():
+            med = np.median(np.abs(refs[:, rows, None] - refs[:, None, :]), axis=0)
+            Z[rows][neither[rows]] = med[neither[rows]]
+    cnt[neither] = 1
     Z /= cnt
     Z = 0.5 * (Z + Z.T)
     np.fill_diagonal(Z, 0.0)
@@ -200,17 +238,18 @@ def affine_time(
 ) -> np.ndarray | None:
     """Time of every image assuming each stream runs at a constant frame rate (videos).
 
-    Stream s's images are at ``t = a_s + b_s frame``. Every image of a stream is placed on every
-    other stream's polyline by order-preserving DTW, which gives it a fractional frame number
+    Stream s's images are at ``t = a_s + b_s frame``. Every image of a stream is placed on the
+    polylines of the other streams it meets (:class:`Placement`: all, up to
+    :data:`REFERENCE_STREAMS`) by order-preserving DTW, which gives it a fractional frame number
     there; a robust (Theil-Sen) line through those pairs (at most ``THEIL_SEN_POINTS`` of
     them, evenly spaced) gives the relative offset and rate of
-    the two streams, and a least-squares fit over all pairs gives every (a_s, b_s), with the
+    the two streams, and a least-squares fit over those pairs gives every (a_s, b_s), with the
     longest stream as the reference clock. With ``rates`` (N,), every image's stream's known
     frame rate, the rates are their ratios and each pair gives its offset alone, the median of
     the placed frame numbers less the rate ratio times the frames: the DTW placements of noisy
     shapes stall and jump, and a line through them can miss the rate by tens of percent
     (docs/method.md, "Known rates in the placement"). Lone photos take the median time at which
-    the streams' polylines place them. Returns (N,) times in the reference stream's frames, or
+    the reference polylines place them. Returns (N,) times in the reference stream's frames, or
     None when no two streams have two or more images.
     """
     n = X.shape[0]
@@ -219,27 +258,30 @@ def affine_time(
     if len(lines) < 2:
         return None
     k = len(lines)
-    # fractional frame number of line c at which every image sits
-    at = np.empty((k, n))
+    # fractional frame number of line c at which every image placed on it sits
+    at = []
     for c, idx in enumerate(lines):
-        arc, keep = np.unique(pl.pos[c, idx], return_index=True)
+        arc, keep = np.unique(pl.on(c, idx), return_index=True)
         fr = frames[idx].astype(float)[keep]
-        at[c] = np.interp(pl.pos[c], arc, fr) if arc.size > 1 else fr[0]
+        at.append(np.interp(pl.pos[c], arc, fr) if arc.size > 1
+                  else np.full(pl.placed[c].size, fr[0]))
     ref = int(np.argmax([m.size for m in lines]))
     known = None if rates is None else np.array([rates[idx[0]] for idx in lines])
     pairs = []  # (d, c, log slope, intercept, size): f_c = icpt + slope f_d
     for c in range(k):
         for d, other in enumerate(lines):
-            if d == c:
+            if d == c or not (pl.full[c] or pl.full[d]):
                 continue
             if known is not None:
                 slope = known[c] / known[d]
-                icpt = float(np.median(at[c, other] - slope * frames[other]))
+                icpt = float(np.median(at[c][np.searchsorted(pl.placed[c], other)]
+                                       - slope * frames[other]))
             else:
                 # Theil-Sen takes all pairs of points: on evenly spaced ones of a long stream
                 few = other[np.unique(np.linspace(0, other.size - 1,
                                                   min(other.size, THEIL_SEN_POINTS)).astype(int))]
-                slope, icpt = theil_sen(frames[few].astype(float), at[c, few])
+                slope, icpt = theil_sen(frames[few].astype(float),
+                                        at[c][np.searchsorted(pl.placed[c], few)])
             if slope > 0:
                 pairs.append((d, c, np.log(slope), icpt, other.size))
     # t = a_s + b_s f  =>  log b_d - log b_c = log slope,  a_d - a_c = b_c icpt: one weighted
@@ -257,9 +299,15 @@ def affine_time(
         b = np.exp(np.linalg.lstsq(Aw, lslope * wts, rcond=None)[0])
     icpt = np.array([b[c] * i for _, c, _, i, _ in pairs] + [0.0])
     a = np.linalg.lstsq(Aw, icpt * wts, rcond=None)[0]
-    t = np.median(a[:, None] + b[:, None] * at, axis=0)  # lone photos: through every line
+    t = np.empty(n)
+    lone = np.ones(n, dtype=bool)
     for c, idx in enumerate(lines):
         t[idx] = a[c] + b[c] * frames[idx]
+        lone[idx] = False
+    if lone.any():  # through every reference line
+        lone = np.flatnonzero(lone)
+        t[lone] = np.median([a[c] + b[c] * at[c][np.searchsorted(pl.placed[c], lone)]
+                             for c in np.flatnonzero(pl.full)], axis=0)
     return t
 
 
