@@ -15,10 +15,8 @@ Run from the repository root::
 
 from __future__ import annotations
 
-import argparse
 import functools
 import importlib.util
-import json
 import logging
 import sys
 import time
@@ -26,8 +24,6 @@ from pathlib import Path
 from types import ModuleType
 
 import numpy as np
-
-from dloe_sfm.io import atomic_path
 
 logger = logging.getLogger("dloe_sfm")
 
@@ -108,20 +104,9 @@ def table(rows: list[dict]) -> str:
 
 def main(seeds: list[int], out: Path) -> list[dict]:
     """Every seed into ``out/seed<k>``; the table to stdout and ``out/crowd.json``."""
-    out.mkdir(parents=True, exist_ok=True)
-    rows = [run_seed(seed, out / f"seed{seed}") for seed in seeds]
-    print(table(rows))
-    with atomic_path(out / "crowd.json") as tmp:
-        tmp.write_text(json.dumps(rows, indent=1) + "\n")
-    return rows
+    return field_pipeline().run_seeds(seeds, out, run_seed, table, "crowd.json")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--out", type=Path, default=Path("outputs/crowd_workspaces"),
-                        help="one folder per seed (seed<k>/workspace is reused when present)")
-    args = parser.parse_args()
-    logging.basicConfig(format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
-                        datefmt="%Y/%m/%d %H:%M:%S", level=logging.INFO)
+    args = field_pipeline().seeds_command_line(__doc__, Path("outputs/crowd_workspaces"))
     main(args.seeds, args.out)

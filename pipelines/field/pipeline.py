@@ -169,22 +169,36 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(seeds: list[int], out: Path) -> list[dict]:
-    """Every seed into ``out/seed<k>``; the table to stdout and ``out/field.json``."""
+def run_seeds(seeds: list[int], out: Path, run_seed: Callable[[int, Path], dict],
+              table: Callable[[list[dict]], str], name: str) -> list[dict]:
+    """Every seed into ``out/seed<k>`` by ``run_seed``; ``table`` of the rows to stdout and the
+    rows to ``out/<name>`` (also for ``pipelines/crowd_workspaces``)."""
     out.mkdir(parents=True, exist_ok=True)
     rows = [run_seed(seed, out / f"seed{seed}") for seed in seeds]
     print(table(rows))
-    with atomic_path(out / "field.json") as tmp:
+    with atomic_path(out / name) as tmp:
         tmp.write_text(json.dumps(rows, indent=1) + "\n")
     return rows
 
 
-if __name__ == "__main__":
-    parser = argparse.ArgumentParser(allow_abbrev=False, description=__doc__.splitlines()[0])
+def seeds_command_line(doc: str, default_out: Path) -> argparse.Namespace:
+    """``--seeds`` and ``--out`` of a workspace pipeline, parsed, with the package's log lines
+    at INFO (also for ``pipelines/crowd_workspaces``)."""
+    parser = argparse.ArgumentParser(allow_abbrev=False, description=doc.splitlines()[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--out", type=Path, default=Path("outputs/field"),
+    parser.add_argument("--out", type=Path, default=default_out,
                         help="one folder per seed (seed<k>/workspace is reused when present)")
     args = parser.parse_args()
     logging.basicConfig(format="[%(asctime)s %(name)s %(levelname)s] %(message)s",
                         datefmt="%Y/%m/%d %H:%M:%S", level=logging.INFO)
+    return args
+
+
+def main(seeds: list[int], out: Path) -> list[dict]:
+    """Every seed into ``out/seed<k>``; the table to stdout and ``out/field.json``."""
+    return run_seeds(seeds, out, run_seed, table, "field.json")
+
+
+if __name__ == "__main__":
+    args = seeds_command_line(__doc__, Path("outputs/field"))
     main(args.seeds, args.out)
