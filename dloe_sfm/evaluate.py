@@ -15,7 +15,7 @@ from .core.options import Options
 from .core.problem import initialise, normalise
 from .core.result import Result
 from .core.sequencing import kendall_tau
-from .core.steps import x_step
+from .core.xstep import x_step
 from .errors import InputError
 from .io import NpzReader
 from .truth import GroundTruth

@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from scipy.optimize import minimize
 from scipy.sparse.csgraph import connected_components
 
-from dloe_sfm.core import steps
+from dloe_sfm.core import xstep
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.init import (
     PARTNER_STREAMS,
@@ -41,9 +41,9 @@ from dloe_sfm.core.steps import (
     row_terms,
     smoothness_matrix,
     total_cost,
-    x_step,
 )
 from dloe_sfm.core.wstep import select_candidates, w_step
+from dloe_sfm.core.xstep import x_step
 from dloe_sfm.evaluate import oracle_reconstruct
 from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
 from dloe_sfm.truth import GroundTruth, Simulated
@@ -554,14 +554,14 @@ def dense_x_step(W, D, prob, lambda1, lambda2):
 
 
 def test_hard_x_step_in_groups_of_points_matches_one_group(rng, monkeypatch):
-    """With hard rays the points are solved in groups of about ``steps.BATCH`` entries: many
+    """With hard rays the points are solved in groups of about ``xstep.BATCH`` entries: many
     small groups give the one-group answer."""
     cap, truth = small_capture(rng, n_per_stream=20, p=5)
     cap.x[rng.random(cap.visible.shape) < 0.3] = np.nan
     prob = build_problem(cap, Options(), np.zeros(3), 1.0)
     D = rng.uniform(0.5, 1.5, cap.num_images)
     whole = x_step(prob.chain, D, prob, lambda1=0.05, lambda2=np.inf, X_prev=truth.X)
-    monkeypatch.setattr(steps, "BATCH", 50)
+    monkeypatch.setattr(xstep, "BATCH", 50)
     grouped = x_step(prob.chain, D, prob, lambda1=0.05, lambda2=np.inf, X_prev=truth.X)
     assert np.abs(grouped - whole).max() < 1e-10 * (1 + np.abs(whole).max())
 
@@ -581,12 +581,12 @@ def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, gra
         cols = rng.integers(0, n, (n, 6)).ravel()
         W = sp.csr_matrix((np.full(6 * n, 1 / 6), (np.repeat(np.arange(n), 6), cols)), (n, n))
         # this small system's band would still fit the default width: as if it were large
-        monkeypatch.setattr(steps, "BAND_WIDTH", 8)
+        monkeypatch.setattr(xstep, "BAND_WIDTH", 8)
     if graph == "indefinite":
         lambda1 = -3.0
-    superlu = steps._superlu
+    superlu = xstep._superlu
     sparse_solves = []
-    monkeypatch.setattr(steps, "_superlu", lambda H, b: sparse_solves.append(1) or superlu(H, b))
+    monkeypatch.setattr(xstep, "_superlu", lambda H, b: sparse_solves.append(1) or superlu(H, b))
     D = rng.uniform(0.5, 1.5, n)
     X = x_step(W, D, prob, lambda1=lambda1, lambda2=lambda2, X_prev=truth.X)
     assert len(sparse_solves) == (0 if graph == "chain" else p)

@@ -29,7 +29,7 @@ from dloe_sfm.core.robust import (
     spare_mispredicted,
 )
 from dloe_sfm.core.solver import reconstruct
-from dloe_sfm.core.steps import x_step
+from dloe_sfm.core.xstep import x_step
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (

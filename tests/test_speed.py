@@ -12,7 +12,7 @@ from dloe_sfm.core import alternation, pipeline
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.sequencing import theil_sen
 from dloe_sfm.core.solver import reconstruct
-from dloe_sfm.core.steps import _soft_system
+from dloe_sfm.core.xstep import _soft_system
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
 

@@ -31,8 +31,9 @@ import scipy.sparse as sp
 from ..core.capture import Capture
 from ..core.options import Options
 from ..core.problem import build_problem, initialise, normalisation
-from ..core.steps import full_weights, x_step
+from ..core.steps import full_weights
 from ..core.wstep import select_candidates, w_step
+from ..core.xstep import x_step
 
 logger = logging.getLogger("dloe_sfm")
 

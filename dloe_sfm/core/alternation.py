@@ -37,8 +37,9 @@ from .sequencing import (
     orient,
     place_on_streams,
 )
-from .steps import Problem, d_step, full_weights, temporal_ends, total_cost, x_step
+from .steps import Problem, d_step, full_weights, temporal_ends, total_cost
 from .wstep import select_candidates, w_step
+from .xstep import x_step
 
 logger = logging.getLogger("dloe_sfm")
 

@@ -126,7 +126,7 @@ def depth_variances(Q: sp.csr_matrix, rays: np.ndarray, observed: np.ndarray) ->
     """(N, P) diagonal of the inverse of each point's hard-ray system, up to the residual scale.
 
     Point p: ``X_p = c + B z`` with one depth column ``r_np`` per observed image and three unit
-    columns per unobserved one (as ``steps.x_step`` with ``lambda2 = inf``); the system is
+    columns per unobserved one (as ``xstep.x_step`` with ``lambda2 = inf``); the system is
     ``B^T (Q kron I3) B``. Observed entries: the depth's variance factor; unobserved: the trace
     of the position's 3 x 3 block.
     """

@@ -44,8 +44,9 @@ from .robust import (
     spare_mispredicted,
 )
 from .sequencing import affine_time
-from .steps import Problem, x_step
+from .steps import Problem
 from .wstep import select_candidates, w_step
+from .xstep import x_step
 
 logger = logging.getLogger("dloe_sfm")
 
