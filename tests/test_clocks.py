@@ -9,18 +9,12 @@ from dloe_sfm.core import clocks
 from dloe_sfm.core.clocks import (
     OUT_OF_RANGE,
     REACH,
-    _cubic_bspline,
-    _offsets,
-    _rays,
-    _SplineFit,
     as_good_share,
     chain_predicted,
     clocks_hold,
     clocks_time,
     fit_clocks,
     moved_periods,
-    ray_equations,
-    spline_residuals,
     time_chain,
 )
 from dloe_sfm.core.options import Clocks, Options
@@ -28,6 +22,14 @@ from dloe_sfm.core.pipeline import Verdict, clocks_predict
 from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.core.splines import (
+    SplineFit,
+    _cubic_bspline,
+    offset_columns,
+    ray_equations,
+    spline_residuals,
+    visible_rays,
+)
 from dloe_sfm.evaluate import oracle_reconstruct, point_errors
 from dloe_sfm.export import export_outputs
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
@@ -128,7 +130,7 @@ def test_spline_residuals_match_a_dense_solve(rng):
     r, Jb = spline_residuals(t, E, rhs, visible, spacing, start, dt, ridge=ridge)
     assert np.abs(r - res).max() <= 1e-10 * np.abs(res).max()
     assert np.abs(Jb - J).max() <= 1e-10 * np.abs(J).max()
-    jtj, jtr = _SplineFit(t, _rays(E, rhs, visible), spacing, start, ridge).gram(dt)
+    jtj, jtr = SplineFit(t, visible_rays(E, rhs, visible), spacing, start, ridge).gram(dt)
     assert np.abs(jtj - J.T @ J).max() <= 1e-10 * np.abs(J.T @ J).max()
     assert np.abs(jtr - J.T @ res).max() <= 1e-10 * np.abs(J.T @ res).max()
 
@@ -144,7 +146,7 @@ def test_spline_offsets_match_a_dense_solve(rng):
     stream = np.arange(n) % 3 - 1  # -1: the reference
     visible[stream == 1, 2] &= np.arange(n)[stream == 1] < 20  # too few: no offset
     dt = np.stack([stream == 0, (stream == 1) * np.arange(n)], axis=1).astype(float)
-    offsets = _offsets(stream, visible, 2)
+    offsets = offset_columns(stream, visible, 2)
     assert offsets.active.sum() == 5 and not offsets.active[1, 2]
     start = -0.6
     img, pt = np.nonzero(visible)
@@ -155,7 +157,7 @@ def test_spline_offsets_match_a_dense_solve(rng):
                 extra[2 * o + a, (2 * stream[i] + a) * p + q] = -np.linalg.norm(E[i, q, 0])
     fitted = offsets.active.repeat(2, axis=0).ravel()
     theta, res, J = _dense_fit(t, E, rhs, visible, spacing, start, ridge, dt, extra[:, fitted])
-    fit = _SplineFit(t, _rays(E, rhs, visible), spacing, start, ridge, offsets)
+    fit = SplineFit(t, visible_rays(E, rhs, visible), spacing, start, ridge, offsets)
     assert np.abs(fit.res - res).max() <= 1e-10 * np.abs(res).max()
     g = theta[-fitted.sum():]
     assert np.abs(fit.g.ravel()[fitted] - g).max() <= 1e-10 * np.abs(g).max()
@@ -333,13 +335,13 @@ def test_clocks_knots_do_not_shrink_where_streams_fall_in_phase(mixed_walk, monk
     t0 += 1e-4 * streams
     spacings = set()
 
-    class Recorded(_SplineFit):
+    class Recorded(SplineFit):
         def __init__(self, t, rays, spacing, start, *args, **kwargs):
             if t.size == keep.size:
                 spacings.add(spacing)
             super().__init__(t, rays, spacing, start, *args, **kwargs)
 
-    monkeypatch.setattr(clocks, "_SplineFit", Recorded)
+    monkeypatch.setattr(clocks, "SplineFit", Recorded)
     fit_clocks(t0, streams, frames, E[keep], rhs[keep], cap.visible[keep])
     interval = clocks.sampling_interval(t0)
     assert interval > 0.01
@@ -500,11 +502,11 @@ def test_spline_times_before_the_first_knot_are_refused(rng):
     rays = rng.normal(size=(n, p, 3))
     rays /= np.linalg.norm(rays, axis=2, keepdims=True)
     E, rhs = ray_equations(rays, rng.normal(size=(n, 3)), np.ones((n, p)))
-    obs = _rays(E, rhs, np.ones((n, p), dtype=bool))
+    obs = visible_rays(E, rhs, np.ones((n, p), dtype=bool))
     t = np.linspace(0.0, 1.0, n)
-    _SplineFit(t, obs, 0.25, -0.1)
+    SplineFit(t, obs, 0.25, -0.1)
     with pytest.raises(ValueError, match="before the first knot"):
-        _SplineFit(t - 0.2, obs, 0.25, -0.1)
+        SplineFit(t - 0.2, obs, 0.25, -0.1)
 
 
 def test_a_wild_trial_step_is_rejected_not_fitted(sparse_walk, monkeypatch):

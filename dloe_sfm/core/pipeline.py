@@ -24,7 +24,6 @@ from .clocks import (
     clocks_time,
     fit_clocks,
     moved_periods,
-    ray_equations,
     time_chain,
 )
 from .events import segment_events
@@ -44,6 +43,7 @@ from .robust import (
     spare_mispredicted,
 )
 from .sequencing import affine_time
+from .splines import ray_equations
 from .steps import Problem
 from .wstep import select_candidates, w_step
 from .xstep import x_step

@@ -7,16 +7,17 @@ exactly, and every other stream's offset and rate are relative to it.
 
 Uncertainty. When the times are the streams' affine clocks (base ``clock`` or ``affine
 embedding``) a line through them fits exactly, so its scatter says nothing. The uncertainty then
-comes from the clock fit's own problem (``core.clocks``: every point's trajectory a cubic
-B-spline in time, the residual each observation's distance to its ray, the spline eliminated),
-with ``J`` the Kaufman Jacobian of the residuals in the non-reference streams' offsets and rates,
-averaged over the fit's knot spacings: the Gauss-Newton covariance ``s^2 (J^T J)^-1`` (``s^2``
-the residual variance per degree of freedom: the rays' noise) plus the outer product of the
-Gauss-Newton step each spacing alone would take from the estimate (the spline model's own
-error, which dominates on clean data). It is local: a fit caught in a wrong minimum keeps a
-small one. Where the clock fit held the rates at the known frame rates' ratios, ``J`` is in the
-offsets alone and the rates carry no uncertainty (``rate_held``). With base ``rank`` the times
-are not on lines: ordinary least squares of the times on the frames, with its standard errors.
+comes from the clock fit's own problem (``core.clocks``, ``core.splines``: every point's
+trajectory a cubic B-spline in time, the residual each observation's distance to its ray, the
+spline eliminated), with ``J`` the Kaufman Jacobian of the residuals in the non-reference
+streams' offsets and rates, averaged over the fit's knot spacings: the Gauss-Newton covariance
+``s^2 (J^T J)^-1`` (``s^2`` the residual variance per degree of freedom: the rays' noise) plus
+the outer product of the Gauss-Newton step each spacing alone would take from the estimate (the
+spline model's own error, which dominates on clean data). It is local: a fit caught in a wrong
+minimum keeps a small one. Where the clock fit held the rates at the known frame rates' ratios,
+``J`` is in the offsets alone and the rates carry no uncertainty (``rate_held``). With base
+``rank`` the times are not on lines: ordinary least squares of the times on the frames, with its
+standard errors.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import numpy as np
 
 from ..errors import InputError
 from .capture import Capture
-from .clocks import SPACINGS, ray_equations, sampling_interval, spline_residuals
+from .clocks import SPACINGS, sampling_interval
+from .splines import ray_equations, spline_residuals
 
 Fps = float | dict[int, float] | None
 """Frame rates: one for every stream, per stream id, or unknown."""
