@@ -9,6 +9,13 @@ from scipy.sparse.csgraph import connected_components
 
 from dloe_sfm.core import xstep
 from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.embedding import (
+    BACKBONE_NEIGHBOURS,
+    backbone_embedding,
+    line_embedding,
+    mds_embedding,
+    neighbour_graph,
+)
 from dloe_sfm.core.init import (
     PARTNER_STREAMS,
     _candidates,
@@ -19,16 +26,11 @@ from dloe_sfm.core.init import (
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.problem import build_problem, initialise
 from dloe_sfm.core.sequencing import (
-    BACKBONE_NEIGHBOURS,
     REFERENCE_STREAMS,
     affine_time,
     arc_distance,
-    backbone_embedding,
     euclidean_distance,
     kendall_tau,
-    line_embedding,
-    mds_embedding,
-    neighbour_graph,
     order_from_embedding,
     orient,
     place_on_streams,

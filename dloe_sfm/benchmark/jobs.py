@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 from ..baselines import high_pass_filter, pseudo_triangulation, sedl, trajectory_basis
 from ..core import alternation, pipeline, solver
 from ..core.capture import Capture
+from ..core.embedding import line_embedding
 from ..core.options import Distance, Embedding, Options
 from ..core.parallel import single_threaded_children
 from ..core.problem import initialise
@@ -28,7 +29,6 @@ from ..core.sequencing import (
     affine_time,
     distance_matrix,
     kendall_tau,
-    line_embedding,
     order_from_embedding,
 )
 from ..core.solver import reconstruct

@@ -13,6 +13,7 @@ import scipy.sparse as sp
 
 from .capture import Capture
 from .clocks import time_chain
+from .embedding import backbone_embedding, line_embedding, mds_embedding
 from .events import SHORT_RUN, segment_events
 from .noise import (
     CHECK_IMAGES,
@@ -29,10 +30,7 @@ from .robust import predicted, residuals_px
 from .sequencing import (
     MDS_SAMPLE,
     affine_time,
-    backbone_embedding,
     distance_matrix,
-    line_embedding,
-    mds_embedding,
     order_from_embedding,
     orient,
     place_on_streams,
@@ -66,7 +64,7 @@ def sequence(
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
     With the ``affine`` embedding and no two videos (streams of more than ``events.SHORT_RUN``
-    images), both are the shapes' backbone (``sequencing.backbone_embedding``); with video
+    images), both are the shapes' backbone (``embedding.backbone_embedding``); with video
     streams, both come from the streams' affine clocks
     (the prior rescaled to the MDS embedding's length units, which the T term needs; that scale
     is measured on at most ``MDS_SAMPLE`` images spread over the capture, so no N x N table is
