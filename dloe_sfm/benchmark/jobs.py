@@ -124,12 +124,12 @@ def _rss_mb() -> float:
 # robust round, not the first alternation
 _METERED = (
     (pipeline, "initialise", "init"),
-    (alternation, "initialise", "init"),
     (pipeline, "initial_events", "events"),
-    (alternation, "segment_events", "events"),
+    (pipeline, "segment_events", "events"),
     (pipeline, "solve_events", "alternation"),
     (pipeline, "robust_rounds", "robust rounds"),
     (pipeline, "clocks_and_offsets", "clocks"),
+    (pipeline, "sequence", "sequencing"),
     (alternation, "sequence", "sequencing"),
     (solver, "assess", "assess"),
 )

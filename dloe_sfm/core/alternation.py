@@ -1,5 +1,7 @@
-"""One event's solve: alternating convex search (W -> D -> X sweeps, hard rays then soft) with
-the images re-sequenced as it goes (docs/method.md, "The steps as implemented")."""
+"""Alternating convex search: the sweeps of one phase (W -> D -> X at one ray weight) with the
+images re-sequenced as they go, the sequencing itself, the soft-ray weight and the soft phase's
+stopping rule (docs/method.md, "The steps as implemented"). One event's solve, hard rays then
+soft, runs them: ``pipeline.solve_event``."""
 
 from __future__ import annotations
 
@@ -14,24 +16,21 @@ import scipy.sparse as sp
 from .capture import Capture
 from .clocks import time_chain
 from .embedding import backbone_embedding, line_embedding, mds_embedding
-from .events import SHORT_RUN, segment_events
+from .events import SHORT_RUN
 from .noise import (
     CHECK_IMAGES,
     FOLD_SWEEPS,
-    estimate_noise_px,
     image_folds,
     observation_folds,
     soft_wins,
 )
-from .options import AUTO, Distance, Embedding, Options
-from .problem import Normalised, initialise, normalise
-from .result import Result
-from .robust import predicted, residuals_px
+from .options import Distance, Embedding, Options
+from .problem import Normalised, normalise
+from .robust import residuals_px
 from .sequencing import (
     MDS_SAMPLE,
     affine_time,
     distance_matrix,
-    order_from_embedding,
     orient,
     place_on_streams,
 )
@@ -217,81 +216,6 @@ def alternate(
             if options.fixed_degree:
                 st.D = degrees(st.f, prob, options)
     return False, f"stopped after {phase.budget} iterations"
-
-
-def solve_event(
-    capture: Capture,
-    options: Options,
-    X_world: np.ndarray | None = None,
-    progress: Progress | None = None,
-) -> Result:
-    """One event: init (unless given), alternation (hard rays, then soft ones with a finite ray
-    weight; with ``noise_px`` = ``auto`` at the level estimated from the hard-ray solution, kept
-    only if they predict held-out detections better: :func:`soft_checks_out`), sequencing.
-    Returns a :class:`Result` in world units."""
-    t_start = time.perf_counter()
-    if X_world is None:
-        X_world = initialise(capture, options)
-    norm = normalise(capture, options, X_world)
-    prob = norm.problem
-    X = norm.to_normal(X_world)
-    init_seconds = time.perf_counter() - t_start
-    t0 = time.perf_counter()
-    prior_f, f = sequence(X, prob, capture.frame, options)
-    sequencing_seconds = time.perf_counter() - t0
-    auto = options.noise_px == AUTO
-    soft = auto or np.isfinite(soft_ray_weight(capture, options))
-    st = Search(X=X, D=degrees(f, prob, options), prior_f=prior_f, f=f, progress=progress,
-                total=options.max_iterations + (options.soft_iterations if soft else 0))
-    st.timings["init"] = init_seconds
-    st.timings["sequencing"] += sequencing_seconds
-    # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
-    # settle W first; the soft phase then only refines
-    success, message = alternate(st, prob, capture.frame, options,
-                                 Phase(np.inf, options.max_iterations))
-    hard, hard_outcome, hard_sweeps = st.best, (success, message), len(st.costs)
-    if auto:
-        X_pred = predicted(hard.W, norm.to_world(hard.X))
-        options = options.replace(noise_px=estimate_noise_px(residuals_px(capture, X_pred)))
-    lambda2 = soft_ray_weight(capture, options)
-    if np.isfinite(lambda2):
-        st.X = st.best.X.copy()
-        success, message = alternate(
-            st, prob, capture.frame, options,
-            Phase(lambda2, options.soft_iterations, discrepancy(capture, options, norm)),
-        )
-        if auto and not soft_checks_out(capture, options, norm, hard, st):
-            # the hard-ray solve stands, with its own history
-            st.best, (success, message) = hard, hard_outcome
-            del st.costs[hard_sweeps:], st.changes[hard_sweeps:]
-            options = options.replace(noise_px=0.0)
-    if auto:
-        logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
-    if progress is not None and len(st.costs) < st.total:
-        progress(st.total, st.total, {"cost": st.costs[-1], "change": st.changes[-1]})
-    best = st.best
-    t0 = time.perf_counter()
-    _, f = sequence(best.X, prob, capture.frame, options, final=True)
-    st.timings["sequencing"] += time.perf_counter() - t0
-    A = sp.csr_matrix(sp.diags(best.D) @ best.W)
-    return Result(
-        X=norm.to_world(best.X),
-        order=order_from_embedding(f),
-        A=A,
-        W=best.W,
-        D=best.D,
-        events=segment_events(A, capture.stream, capture.frame, shapes=best.X),
-        embedding=f * norm.scale,
-        cost_history=np.array(st.costs),
-        change_history=np.array(st.changes),
-        nit=len(st.costs),
-        success=success,
-        message=message,
-        seconds=time.perf_counter() - t_start,
-        timings=st.timings,
-        scale=norm.scale,
-        noise_px=float(options.noise_px),
-    )
 
 
 def soft_checks_out(
