@@ -3,17 +3,10 @@
 import numpy as np
 import pytest
 
-from dloe_sfm.core.noise import (
-    FIT_RATIO,
-    FOLDS,
-    estimate_noise_px,
-    image_folds,
-    observation_folds,
-    residual_floor_px,
-    soft_wins,
-)
+from dloe_sfm.core.decisions import soft_rays_on_clocks, soft_wins
+from dloe_sfm.core.heldout import FOLDS, image_folds, observation_folds
+from dloe_sfm.core.noise import FIT_RATIO, estimate_noise_px, residual_floor_px
 from dloe_sfm.core.options import AUTO, Options
-from dloe_sfm.core.pipeline import soft_on_clocks
 from dloe_sfm.core.robust import predicted, residuals_px
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.errors import InputError
@@ -113,12 +106,12 @@ def test_detector_errors_are_solved_with_soft_rays_and_beat_hard_ones(assets_dir
 
 @pytest.mark.parametrize("noise", [0.0, 3.0])
 def test_soft_rays_along_the_clocks_only_for_noisy_detections(assets_dir, noise):
-    """``pipeline.soft_on_clocks`` along the true clocks of a hard-ray solve: 3 px detections get
-    soft rays at the level the graph's fit leaves (held-out images predicted better); exact ones
-    stay exact (the level their fit leaves is below ``noise.CHAIN_MIN_PX``)."""
+    """``decisions.soft_rays_on_clocks`` along the true clocks of a hard-ray solve: 3 px detections
+    get soft rays at the level the graph's fit leaves (held-out images predicted better); exact
+    ones stay exact (the level their fit leaves is below ``decisions.CHAIN_MIN_PX``)."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     cap, truth = simulate(seq, SimulationSettings(duration=1.5, noise=noise))
     options = Options(noise_px=0.0, stream_clocks="off", robust_loss="none")
     r = reconstruct(cap, options)
-    level, _ = soft_on_clocks(cap, options, r.X, r.D, r.W, truth.t)
+    level, _ = soft_rays_on_clocks(cap, options, r.X, r.D, r.W, truth.t)
     assert abs(level - noise) <= 0.25 * noise, level

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from ..baselines import high_pass_filter, pseudo_triangulation, sedl, trajectory_basis
-from ..core import alternation, pipeline, solver
+from ..core import alternation, heldout, pipeline, solver
 from ..core.capture import Capture
 from ..core.embedding import line_embedding
 from ..core.options import Distance, Embedding, Options
@@ -131,6 +131,7 @@ _METERED = (
     (pipeline, "clocks_and_offsets", "clocks"),
     (pipeline, "sequence", "sequencing"),
     (alternation, "sequence", "sequencing"),
+    (heldout, "sequence", "sequencing"),
     (solver, "assess", "assess"),
 )
 

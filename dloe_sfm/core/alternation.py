@@ -8,24 +8,16 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
 from .capture import Capture
-from .clocks import time_chain
 from .embedding import backbone_embedding, line_embedding, mds_embedding
 from .events import SHORT_RUN
-from .noise import (
-    CHECK_IMAGES,
-    FOLD_SWEEPS,
-    image_folds,
-    observation_folds,
-    soft_wins,
-)
 from .options import Distance, Embedding, Options
-from .problem import Normalised, normalise
+from .problem import Normalised
 from .robust import residuals_px
 from .sequencing import (
     MDS_SAMPLE,
@@ -216,96 +208,6 @@ def alternate(
             if options.fixed_degree:
                 st.D = degrees(st.f, prob, options)
     return False, f"stopped after {phase.budget} iterations"
-
-
-def soft_checks_out(
-    capture: Capture, options: Options, norm: Normalised, hard: Best, st: Search
-) -> bool:
-    """Whether the soft-ray solution ``st.best`` (at ``options.noise_px``, the estimate of
-    ``auto``) predicts held-out detections better than the hard-ray one ``hard``
-    (``noise.soft_wins``; observation folds, each model's folds started from its own solution,
-    on at most ``noise.CHECK_IMAGES`` images in the middle of the time line), logged."""
-    window, sub = middle_window(capture, st.f)
-    hard_px = held_out_px(sub, options.replace(noise_px=0.0), norm.to_world(hard.X)[window],
-                          hard.D[window], np.inf)
-    soft_px = held_out_px(sub, options, norm.to_world(st.best.X)[window], st.best.D[window],
-                          soft_ray_weight(capture, options))
-    wins = soft_wins(hard_px, soft_px)
-    logger.info("held-out detections, median residual: hard rays %.2f px, soft rays at %.2f px "
-                "noise %.2f px: %s", np.nanmedian(hard_px), options.noise_px,
-                np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
-    return wins
-
-
-def middle_window(
-    capture: Capture, f: np.ndarray, size: int = CHECK_IMAGES
-) -> tuple[np.ndarray, Capture]:
-    """(sorted indices, capture) of the (at most) ``size`` images in the middle of the time line
-    ``f``: the capture itself when it has no more."""
-    if f.size <= size:
-        return np.arange(f.size), capture
-    lo = (f.size - size) // 2
-    window = np.sort(np.argsort(f, kind="stable")[lo:lo + size])
-    return window, capture.subset(window)
-
-
-def held_out_px(
-    capture: Capture,
-    options: Options,
-    X_world: np.ndarray,
-    D: np.ndarray,
-    lambda2: float,
-    *,
-    times: np.ndarray | None = None,
-    images: bool = False,
-) -> np.ndarray:
-    """Pixel residuals of held-out detections predicted without them (NaN behind the camera).
-
-    Each fold is left out in turn and the rest solved from ``X_world`` (world units) at ray
-    weight ``lambda2``: by DLOE's graph (``noise.FOLD_SWEEPS`` sweeps of the alternation from
-    degrees ``D``), or with ``times`` by the X-step on the chain along those times
-    (``clocks.time_chain``, as the clocks place the points). The folds are observations
-    (``noise.observation_folds``: the image's other points fix when it was taken, so the
-    check is on the detections' noise), or with ``images`` whole images
-    (``noise.image_folds``: the check is on when each image was taken). A held-out image starts
-    from the X-step on the chain along the model's own time line (the graph's: its sequencing
-    embedding), which links it to images of other streams: started from its own stream's
-    neighbours, whose points lie on the same camera's rays, the graph would be handed that
-    camera's view of the held-out instant (docs/method.md, "Stream clocks")."""
-    norm = normalise(capture, options, X_world)
-    prob = norm.problem
-    X = norm.to_normal(X_world)
-    if times is None:
-        prior_f, f = sequence(X, prob, capture.frame, options)
-    if images or times is not None:  # the chain along the model's own time line
-        W, D_chain = time_chain(np.ravel(f) if times is None else times)
-    if images:
-        fold = np.repeat(image_folds(prob.streams, capture.frame)[:, None], X.shape[1], axis=1)
-        fold[~prob.visible] = -1
-        # points the chain leaves undetermined: from the stream neighbours' mean, not their own
-        fill = (prob.chain @ X.reshape(X.shape[0], -1)).reshape(X.shape)
-    else:
-        fold = observation_folds(prob.visible)
-    out = np.full(fold.shape, np.nan)
-    for k in range(int(fold.max()) + 1):
-        held = fold == k
-        pk = replace(prob, weights=np.where(held, 0.0, prob.weights),
-                     rays=np.where(held[..., None], np.nan, prob.rays))
-        start = X
-        if images or times is not None:
-            prev = X
-            if images:
-                outside = held.any(axis=1)[:, None, None]
-                prev = np.where(outside, fill, X)
-            chained = x_step(W, D_chain, pk, lambda1=0.0, lambda2=lambda2, X_prev=prev)
-            if times is not None:
-                out[held] = residuals_px(capture, norm.to_world(chained))[held]
-                continue
-            start = np.where(outside, chained, X)  # the graph's held-out images
-        sk = Search(X=start.copy(), D=D.copy(), prior_f=prior_f, f=f, total=FOLD_SWEEPS)
-        alternate(sk, pk, capture.frame, options, Phase(lambda2, FOLD_SWEEPS))
-        out[held] = residuals_px(capture, norm.to_world(sk.best.X))[held]
-    return out[fold >= 0]
 
 
 def soft_ray_weight(capture: Capture, options: Options) -> float:

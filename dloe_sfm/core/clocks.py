@@ -99,7 +99,7 @@ def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
     """Whether the clocks predict held-out images' detections about as well as DLOE's graph: a
     median residual at most :data:`HOLD_MARGIN` times the graph's, or at least half of the
     detections predicted at least as well. ``graph_px``, ``clock_px``: the same detections'
-    residuals, pixels, NaN ignored (``alternation.held_out_px``). Near-ties go to the clocks, a
+    residuals, pixels, NaN ignored (``heldout.held_out_px``). Near-ties go to the clocks, a
     few numbers per stream where the graph has weights for every image: on exact data both
     models predict at the floor the cameras leave, where the medians alone decide by chance,
     and under detector noise the graph's many neighbours average the held-out detections' noise

@@ -20,10 +20,7 @@ from .alternation import (
     alternate,
     degrees,
     discrepancy,
-    held_out_px,
-    middle_window,
     sequence,
-    soft_checks_out,
     soft_ray_weight,
 )
 from .bias import GAIN, stream_offsets, without_offsets
@@ -38,8 +35,10 @@ from .clocks import (
     moved_periods,
     time_chain,
 )
+from .decisions import soft_rays_kept, soft_rays_on_clocks
 from .events import segment_events
-from .noise import CHAIN_MIN_PX, estimate_noise_px, residual_floor_px, soft_wins
+from .heldout import held_out_px, middle_window
+from .noise import estimate_noise_px, residual_floor_px
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import Normalised, assemble, build_problem, initialise, normalise, parts
@@ -224,7 +223,7 @@ def solve_event(
 ) -> Result:
     """One event: init (unless given), alternation (hard rays, then soft ones with a finite ray
     weight; with ``noise_px`` = ``auto`` at the level estimated from the hard-ray solution, kept
-    only if they predict held-out detections better: ``alternation.soft_checks_out``), sequencing.
+    only if they predict held-out detections better: ``decisions.soft_rays_kept``), sequencing.
     Returns a :class:`Result` in world units."""
     t_start = time.perf_counter()
     if X_world is None:
@@ -257,7 +256,7 @@ def solve_event(
             st, prob, capture.frame, options,
             Phase(lambda2, options.soft_iterations, discrepancy(capture, options, norm)),
         )
-        if auto and not soft_checks_out(capture, options, norm, hard, st):
+        if auto and not soft_rays_kept(capture, options, norm, hard, st):
             # the hard-ray solve stands, with its own history
             st.best, (success, message) = hard, hard_outcome
             del st.costs[hard_sweeps:], st.changes[hard_sweeps:]
@@ -391,9 +390,9 @@ def clocks_predict(
     """The verdict on one event's clocks ``t``: kept when, with the rays of ``noise_px``
     (default the graph's, ``options.noise_px``; 0: hard rays), they predict held-out images'
     detections about as well as DLOE's graph with its own (``clocks.clocks_hold``;
-    ``alternation.held_out_px`` on at most ``noise.CHECK_IMAGES`` images in the middle of the
+    ``heldout.held_out_px`` on at most ``heldout.CHECK_IMAGES`` images in the middle of the
     clocks' time line); else timing when they lost narrowly (``clocks.clocks_time``); else
-    rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_on_clocks`
+    rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_rays_on_clocks`
     has them."""
     window, sub = middle_window(capture, t)
     graph = held_out_px(sub, options, X_world[window], D[window],
@@ -412,36 +411,6 @@ def clocks_predict(
                 "px, at least as good on %.0f %% of them: %s", np.nanmedian(graph),
                 np.nanmedian(clock), 100 * as_good_share(graph, clock), said[verdict])
     return verdict
-
-
-def soft_on_clocks(
-    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, W_graph: sp.spmatrix,
-    t: np.ndarray
-) -> tuple[float, np.ndarray | None]:
-    """The detection noise (pixels) of one event placed on its clocks ``t`` whose graph solve
-    kept hard rays: the level the graph's fit ``W_graph`` leaves (``noise.estimate_noise_px``),
-    if it is at least ``noise.CHAIN_MIN_PX`` and soft rays at it predict held-out images,
-    chained along the clocks, better than hard rays (``noise.soft_wins``); else 0. With it, the
-    held-out residuals of the rays kept (None when the level was not tried). Logged when tried.
-
-    The graph's own check (``alternation.soft_checks_out``) holds out single detections: the
-    image's other points fix its shape, and the depth error along the camera's rays that hard
-    rays keep from noisy detections does not show. A held-out image is predicted from other
-    cameras' images, and their depth errors show in it (docs/method.md, "Held-out checks")."""
-    candidate = estimate_noise_px(residuals_px(capture, predicted(W_graph, X_world)))
-    if candidate < CHAIN_MIN_PX:
-        return 0.0, None
-    window, sub = middle_window(capture, t)
-    soft = options.replace(noise_px=candidate)
-    hard_px = held_out_px(sub, options, X_world[window], D[window],
-                          soft_ray_weight(capture, options), times=t[window], images=True)
-    soft_px = held_out_px(sub, soft, X_world[window], D[window], soft_ray_weight(capture, soft),
-                          times=t[window], images=True)
-    wins = soft_wins(hard_px, soft_px)
-    logger.info("held-out images along the stream clocks, median residual: hard rays %.2f px, "
-                "soft rays at %.2f px noise %.2f px: %s", np.nanmedian(hard_px), candidate,
-                np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
-    return (candidate, soft_px) if wins else (0.0, hard_px)
 
 
 def event_clocks(
@@ -499,7 +468,7 @@ def placements(
     ``capture`` is the one the result was solved on (:func:`robust_rounds`). With
     ``auto_noise`` (``noise_px`` was ``auto``) and hard rays kept by the graph's check, an
     event takes soft rays where the clocks' held-out images ask for them
-    (:func:`soft_on_clocks`). With ``checked`` (the capture before the robust weights, swaps
+    (:func:`soft_rays_on_clocks`). With ``checked`` (the capture before the robust weights, swaps
     undone) the observations of every event are judged again against the chain along its
     clocks (:func:`robust_on_clocks`), and the held-out check will judge both models on that
     verdict. With ``offsets`` the clocks are fitted with each stream's offsets of each point's
@@ -530,7 +499,7 @@ def placements(
                         e, moved)
         noise, held = options.noise_px, None
         if auto_noise and noise == 0:
-            noise, held = soft_on_clocks(sub, options, result.X[idx], result.D[idx],
+            noise, held = soft_rays_on_clocks(sub, options, result.X[idx], result.D[idx],
                                          result.W[idx][:, idx], t)
         ticked = options.replace(noise_px=noise)
         # the chain's weights come from the time line: no compactness term (as the oracle)
