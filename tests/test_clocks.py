@@ -9,16 +9,13 @@ from dloe_sfm.core import clocks
 from dloe_sfm.core.clocks import (
     OUT_OF_RANGE,
     REACH,
-    as_good_share,
     chain_predicted,
-    clocks_hold,
-    clocks_time,
     fit_clocks,
     moved_periods,
     time_chain,
 )
+from dloe_sfm.core.decisions import Verdict, as_good_share, clock_verdict, clocks_hold, clocks_time
 from dloe_sfm.core.options import Clocks, Options
-from dloe_sfm.core.pipeline import Verdict, clocks_predict
 from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
@@ -396,7 +393,7 @@ def test_clocks_come_back_from_a_first_guess_far_off(mixed_walk):
     assert _clock_errors_ms(t, sim.t).max() < 0.1
     options = Options(stream_clocks="off", noise_px=0.0)
     r = reconstruct(cap, options)
-    assert clocks_predict(cap, options, r.X, r.D, t) is Verdict.KEPT
+    assert clock_verdict(cap, options, r.X, r.D, t) is Verdict.KEPT
 
 
 @pytest.mark.slow
@@ -470,15 +467,15 @@ def test_held_out_check_gives_ties_to_the_clocks():
 
 
 def test_held_out_images_keep_true_clocks_and_drop_a_shifted_one(sparse_walk):
-    """``pipeline.clocks_predict`` on the sparse capture solved by the graph alone: the true times
+    """``decisions.clock_verdict`` on the sparse capture solved by the graph alone: the true times
     predict the held-out images better than the graph; one stream's clock moved by a whole
     frame (133 ms) predicts them worse, and the graph is kept."""
     cap, truth = sparse_walk
     options = Options(stream_clocks="off", noise_px=0.0)
     r = reconstruct(cap, options)
-    assert clocks_predict(cap, options, r.X, r.D, truth.t) is Verdict.KEPT
+    assert clock_verdict(cap, options, r.X, r.D, truth.t) is Verdict.KEPT
     shifted = truth.t + np.where(cap.stream == cap.stream[0], 1 / 7.5, 0.0)
-    assert clocks_predict(cap, options, r.X, r.D, shifted) is Verdict.REJECTED
+    assert clock_verdict(cap, options, r.X, r.D, shifted) is Verdict.REJECTED
 
 
 def test_held_out_images_are_not_handed_their_own_camera(assets_dir):
@@ -492,7 +489,7 @@ def test_held_out_images_are_not_handed_their_own_camera(assets_dir):
                                                 detector="openpose"))
     options = Options(stream_clocks="off", noise_px=0.0)
     r = reconstruct(cap, options)
-    assert clocks_predict(cap, options, r.X, r.D, sim.t) is Verdict.KEPT
+    assert clock_verdict(cap, options, r.X, r.D, sim.t) is Verdict.KEPT
 
 
 def test_spline_times_before_the_first_knot_are_refused(rng):

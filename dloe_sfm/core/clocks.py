@@ -47,7 +47,7 @@ REACH = 8
 """A stream that the fit moves this many frame periods or more from its first guess (median over
 its images, against the others, :func:`moved_periods`) may not be pinned by the rays, or the
 first guess was that far off: the clocks must then prove themselves on held-out detections
-(``pipeline.verdicts``). The splines' knots reach that far before the first guess."""
+(``decisions.fit_trusted``). The splines' knots reach that far before the first guess."""
 COARSE_KNOTS = 4.0
 """The first stage fits the clocks to the residual with knots this many times the middle spacing
 apart: its local minima a sampling interval apart smooth out, and a first guess several periods
@@ -64,12 +64,6 @@ GRID_SLOTS = 8000
 images; docs/method.md, "Stream clocks")..."""
 GRID_IMAGES = 2000
 """...and the middle this many images in the first-guess time order (all of them in the fit)."""
-HOLD_MARGIN = 1.05
-"""The clocks are kept when their median held-out residual is at most this many times the graph's
-(:func:`clocks_hold`)."""
-TIMING_MARGIN = 1.5
-"""Clocks dropped for the points still time their event when their median held-out residual is
-at most this many times the graph's (:func:`clocks_time`)."""
 OUT_OF_RANGE = 1e150
 """The fit's cost at clocks that put an image before the splines' first knot, or past
 :data:`SPAN_REACH` (a wild trial step of Levenberg-Marquardt): far above any real cost, so the
@@ -93,36 +87,6 @@ def merged_period(slopes: np.ndarray, inv: np.ndarray, f: np.ndarray) -> float:
     image's stream index, ``f`` (N,) its frame."""
     steps = np.array([np.median(np.diff(np.unique(f[inv == s]))) for s in range(slopes.size)])
     return float(1.0 / np.sum(1.0 / (slopes * steps)))
-
-
-def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
-    """Whether the clocks predict held-out images' detections about as well as DLOE's graph: a
-    median residual at most :data:`HOLD_MARGIN` times the graph's, or at least half of the
-    detections predicted at least as well. ``graph_px``, ``clock_px``: the same detections'
-    residuals, pixels, NaN ignored (``heldout.held_out_px``). Near-ties go to the clocks, a
-    few numbers per stream where the graph has weights for every image: on exact data both
-    models predict at the floor the cameras leave, where the medians alone decide by chance,
-    and under detector noise the graph's many neighbours average the held-out detections' noise
-    better than the chain's two, while the timing hardly shows (docs/method.md, "Far fits and
-    near-ties")."""
-    return bool(np.nanmedian(clock_px) <= HOLD_MARGIN * np.nanmedian(graph_px)
-                or as_good_share(graph_px, clock_px) >= 0.5)
-
-
-def clocks_time(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
-    """Whether clocks that do not hold (:func:`clocks_hold`) lost narrowly enough to still time
-    their event: a median held-out residual at most :data:`TIMING_MARGIN` times the graph's
-    (arguments as :func:`clocks_hold`). Within it the loss is what the graph's many neighbours
-    gain by averaging the detections' noise, which a frame of timing hardly moves; a clock fit
-    that failed loses by twice and more (docs/method.md, "Times from dropped clocks")."""
-    return bool(np.nanmedian(clock_px) <= TIMING_MARGIN * np.nanmedian(graph_px))
-
-
-def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:
-    """Share of the detections with both residuals (pixels) that the clocks predict at least as
-    well as the graph (0 with none)."""
-    both = np.isfinite(graph_px) & np.isfinite(clock_px)
-    return float(np.mean(clock_px[both] <= graph_px[both])) if both.any() else 0.0
 
 
 def _condensed(jtj: np.ndarray, jtr: np.ndarray, squares: float) -> np.ndarray:

@@ -5,15 +5,17 @@
 from __future__ import annotations
 
 import logging
+from enum import Enum
 
 import numpy as np
 import scipy.sparse as sp
 
 from .alternation import Best, Search, soft_ray_weight
 from .capture import Capture
+from .clocks import REACH
 from .heldout import held_out_px, middle_window
 from .noise import estimate_noise_px
-from .options import Options
+from .options import Clocks, Options
 from .problem import Normalised
 from .robust import predicted, residuals_px
 
@@ -22,13 +24,18 @@ logger = logging.getLogger("dloe_sfm")
 SOFT_MARGIN = 0.95
 """Soft rays are taken when their median held-out residual is below this fraction of hard
 rays' (a tie keeps the detections exact)."""
-
 CHAIN_MIN_PX = 1.0
 """Soft rays along the stream clocks (:func:`soft_rays_on_clocks`) are tried from this level up.
 Below a pixel, the level the graph's fit leaves is the SfM cameras' error and the fit's own,
 which soft rays trade in ways held-out images cannot judge: the demo at 0.58 px predicts them
 0.70 x as far off, yet its error goes 6.11 -> 7.24 mm; detectors' noise is several pixels
 (docs/method.md, "Held-out checks")."""
+HOLD_MARGIN = 1.05
+"""The clocks are kept when their median held-out residual is at most this many times the graph's
+(:func:`clocks_hold`)."""
+TIMING_MARGIN = 1.5
+"""Clocks dropped for the points still time their event when their median held-out residual is
+at most this many times the graph's (:func:`clocks_time`)."""
 
 
 def soft_wins(hard_px: np.ndarray, soft_px: np.ndarray) -> bool:
@@ -84,3 +91,85 @@ def soft_rays_on_clocks(
                 "soft rays at %.2f px noise %.2f px: %s", np.nanmedian(hard_px), candidate,
                 np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
     return (candidate, soft_px) if wins else (0.0, hard_px)
+
+
+def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether the clocks predict held-out images' detections about as well as DLOE's graph: a
+    median residual at most :data:`HOLD_MARGIN` times the graph's, or at least half of the
+    detections predicted at least as well. ``graph_px``, ``clock_px``: the same detections'
+    residuals, pixels, NaN ignored (``heldout.held_out_px``). Near-ties go to the clocks, a
+    few numbers per stream where the graph has weights for every image: on exact data both
+    models predict at the floor the cameras leave, where the medians alone decide by chance,
+    and under detector noise the graph's many neighbours average the held-out detections' noise
+    better than the chain's two, while the timing hardly shows (docs/method.md, "Far fits and
+    near-ties")."""
+    return bool(np.nanmedian(clock_px) <= HOLD_MARGIN * np.nanmedian(graph_px)
+                or as_good_share(graph_px, clock_px) >= 0.5)
+
+
+def clocks_time(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether clocks that do not hold (:func:`clocks_hold`) lost narrowly enough to still time
+    their event: a median held-out residual at most :data:`TIMING_MARGIN` times the graph's
+    (arguments as :func:`clocks_hold`). Within it the loss is what the graph's many neighbours
+    gain by averaging the detections' noise, which a frame of timing hardly moves; a clock fit
+    that failed loses by twice and more (docs/method.md, "Times from dropped clocks")."""
+    return bool(np.nanmedian(clock_px) <= TIMING_MARGIN * np.nanmedian(graph_px))
+
+
+def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:
+    """Share of the detections with both residuals (pixels) that the clocks predict at least as
+    well as the graph (0 with none)."""
+    both = np.isfinite(graph_px) & np.isfinite(clock_px)
+    return float(np.mean(clock_px[both] <= graph_px[both])) if both.any() else 0.0
+
+
+class Verdict(Enum):
+    """What the held-out check (:func:`clock_verdict`) makes of one event's clocks."""
+
+    KEPT = "kept"  # the points are placed on them
+    TIMING = "timing"  # DLOE's graph gives the points, the clocks the order and times
+    REJECTED = "rejected"  # DLOE's graph gives both
+
+
+def clock_verdict(
+    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
+    noise_px: float | None = None, clock: np.ndarray | None = None
+) -> Verdict:
+    """The verdict on one event's clocks ``t``: kept when, with the rays of ``noise_px``
+    (default the graph's, ``options.noise_px``; 0: hard rays), they predict held-out images'
+    detections about as well as DLOE's graph with its own (:func:`clocks_hold`;
+    ``heldout.held_out_px`` on at most ``heldout.CHECK_IMAGES`` images in the middle of the
+    clocks' time line); else timing when they lost narrowly (:func:`clocks_time`); else
+    rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_rays_on_clocks`
+    has them."""
+    window, sub = middle_window(capture, t)
+    graph = held_out_px(sub, options, X_world[window], D[window],
+                        soft_ray_weight(capture, options), images=True)
+    if clock is None:
+        ticked = options if noise_px is None else options.replace(noise_px=noise_px)
+        clock = held_out_px(sub, ticked, X_world[window], D[window],
+                            soft_ray_weight(capture, ticked), times=t[window], images=True)
+    verdict = (Verdict.KEPT if clocks_hold(graph, clock)
+               else Verdict.TIMING if clocks_time(graph, clock) else Verdict.REJECTED)
+    said = {Verdict.KEPT: "clocks kept",
+            Verdict.TIMING: "the clocks fail, DLOE's graph is kept for the points, the clocks "
+                            "time the images",
+            Verdict.REJECTED: "the clocks fail clearly, DLOE's graph is kept"}
+    logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
+                "px, at least as good on %.0f %% of them: %s", np.nanmedian(graph),
+                np.nanmedian(clock), 100 * as_good_share(graph, clock), said[verdict])
+    return verdict
+
+
+def fit_trusted(moved: float) -> bool:
+    """Whether a clock fit moved no stream ``clocks.REACH`` frame periods or more from its first
+    guess (``moved``: ``clocks.moved_periods``): beyond, the rays may not pin its clocks, or the
+    first guess was that far off (docs/method.md, "Stream clocks")."""
+    return moved < REACH
+
+
+def clocks_checked(options: Options, moved: float) -> bool:
+    """Whether an event's clocks face the held-out check (:func:`clock_verdict`): always with
+    ``stream_clocks`` = ``auto``; with ``on`` only when the fit is not trusted
+    (:func:`fit_trusted`), else they are kept."""
+    return options.stream_clocks is Clocks.AUTO or not fit_trusted(moved)

@@ -39,7 +39,7 @@ class RobustLoss(str, Enum):
 class Clocks(str, Enum):
     """When the images are placed on the streams' fitted clocks (``Options.stream_clocks``)."""
 
-    AUTO = "auto"  # fitted, kept where they predict held-out detections (pipeline.clocks_predict)
+    AUTO = "auto"  # fitted, kept where they predict held-out detections (decisions.clock_verdict)
     ON = "on"
     OFF = "off"
 
@@ -292,7 +292,7 @@ class Options:
     placed on its streams' fitted affine clocks (``core.clocks``): the points by the X-step on
     the chain along the clocks, the order from them. ``auto``: fitted for every such event and
     kept where they predict held-out images' detections about as well as DLOE's graph
-    (``pipeline.clocks_predict``): few frames per stream, or slow motion under noise, leave the
+    (``decisions.clock_verdict``): few frames per stream, or slow motion under noise, leave the
     clocks unpinned and the graph does better (docs/method.md, "Held-out checks").
     ``on`` / ``off``: always (but a fit that moved a stream ``clocks.REACH`` frame periods
     from DLOE's placement faces the same check) / never (``off``: the paper's method)."""

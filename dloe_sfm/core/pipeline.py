@@ -6,7 +6,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import replace
-from enum import Enum
 from typing import NamedTuple
 
 import numpy as np
@@ -27,17 +26,20 @@ from .bias import GAIN, stream_offsets, without_offsets
 from .capture import Capture
 from .clocks import (
     REACH,
-    as_good_share,
     chain_predicted,
-    clocks_hold,
-    clocks_time,
     fit_clocks,
     moved_periods,
     time_chain,
 )
-from .decisions import soft_rays_kept, soft_rays_on_clocks
+from .decisions import (
+    Verdict,
+    clock_verdict,
+    clocks_checked,
+    fit_trusted,
+    soft_rays_kept,
+    soft_rays_on_clocks,
+)
 from .events import segment_events
-from .heldout import held_out_px, middle_window
 from .noise import estimate_noise_px, residual_floor_px
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
@@ -78,7 +80,7 @@ def solve_single(
     solution's residuals and the capture re-solved (:func:`robust_rounds`). Unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
     streams' fitted clocks (:func:`clocked`; with ``auto`` only where they predict held-out
-    detections about as well as the graph, :func:`clocks_predict`). ``subjects``: the people
+    detections about as well as the graph, ``decisions.clock_verdict``). ``subjects``: the people
     whose points the capture's columns hold (``multitarget.aggregate``), for the events."""
     started = time.perf_counter()
     X_world = initialise(capture, options)
@@ -375,44 +377,6 @@ def robust_rounds(
     ), solved
 
 
-class Verdict(Enum):
-    """What the held-out check (:func:`clocks_predict`) makes of one event's clocks."""
-
-    KEPT = "kept"  # the points are placed on them
-    TIMING = "timing"  # DLOE's graph gives the points, the clocks the order and times
-    REJECTED = "rejected"  # DLOE's graph gives both
-
-
-def clocks_predict(
-    capture: Capture, options: Options, X_world: np.ndarray, D: np.ndarray, t: np.ndarray,
-    noise_px: float | None = None, clock: np.ndarray | None = None
-) -> Verdict:
-    """The verdict on one event's clocks ``t``: kept when, with the rays of ``noise_px``
-    (default the graph's, ``options.noise_px``; 0: hard rays), they predict held-out images'
-    detections about as well as DLOE's graph with its own (``clocks.clocks_hold``;
-    ``heldout.held_out_px`` on at most ``heldout.CHECK_IMAGES`` images in the middle of the
-    clocks' time line); else timing when they lost narrowly (``clocks.clocks_time``); else
-    rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_rays_on_clocks`
-    has them."""
-    window, sub = middle_window(capture, t)
-    graph = held_out_px(sub, options, X_world[window], D[window],
-                        soft_ray_weight(capture, options), images=True)
-    if clock is None:
-        ticked = options if noise_px is None else options.replace(noise_px=noise_px)
-        clock = held_out_px(sub, ticked, X_world[window], D[window],
-                            soft_ray_weight(capture, ticked), times=t[window], images=True)
-    verdict = (Verdict.KEPT if clocks_hold(graph, clock)
-               else Verdict.TIMING if clocks_time(graph, clock) else Verdict.REJECTED)
-    said = {Verdict.KEPT: "clocks kept",
-            Verdict.TIMING: "the clocks fail, DLOE's graph is kept for the points, the clocks "
-                            "time the images",
-            Verdict.REJECTED: "the clocks fail clearly, DLOE's graph is kept"}
-    logger.info("held-out detections, median residual: DLOE's graph %.2f px, stream clocks %.2f "
-                "px, at least as good on %.0f %% of them: %s", np.nanmedian(graph),
-                np.nanmedian(clock), 100 * as_good_share(graph, clock), said[verdict])
-    return verdict
-
-
 def event_clocks(
     t0: np.ndarray, prob: Problem, frame: np.ndarray, options: Options, *, offsets: bool = False,
     rates: np.ndarray | None = None
@@ -441,7 +405,7 @@ class Placement(NamedTuple):
     """One event placed on its stream clocks (:func:`placements`): its images ``idx``, clocks
     ``t``, the chain's ``W`` and ``D``, points ``X`` (world), rejected observations and their
     residuals (pixels), the detection ``noise`` its rays took, and what the held-out check
-    (:func:`clocks_predict`) judges it on: the capture ``judged`` and the clocks' held-out
+    (``decisions.clock_verdict``) judges it on: the capture ``judged`` and the clocks' held-out
     residuals ``held`` when known; ``moved``, how far the fit moved a stream from DLOE's placement
     (``clocks.moved_periods``)."""
 
@@ -519,14 +483,12 @@ def placements(
 
 def verdicts(placed: list[Placement], options: Options, result: Result) -> list[Verdict]:
     """What ``options.stream_clocks`` makes of each placement: with ``auto`` the held-out check
-    against the graph of ``result`` (:func:`clocks_predict`); with ``on`` kept, except that a
-    fit that moved a stream ``clocks.REACH`` frame periods or more from DLOE's placement is
-    checked too: the rays may not pin its clocks, or DLOE's placement was that far off
-    (docs/method.md, "Stream clocks")."""
-    checked = options.stream_clocks is Clocks.AUTO
-    return [Verdict.KEPT if p.moved < REACH and not checked
-            else clocks_predict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t,
-                                p.noise, p.held)
+    against the graph of ``result`` (``decisions.clock_verdict``); with ``on`` kept, except that
+    a fit that moved a stream ``clocks.REACH`` frame periods or more from DLOE's placement is
+    checked too (``decisions.clocks_checked``): the rays may not pin its clocks, or DLOE's
+    placement was that far off (docs/method.md, "Stream clocks")."""
+    return [clock_verdict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t, p.noise,
+                          p.held) if clocks_checked(options, p.moved) else Verdict.KEPT
             for p in placed]
 
 
@@ -709,7 +671,7 @@ def robust_on_clocks(
         if refit and (now & ~rejected).any():
             refit = False
             fitted = event_clocks(t, prob, capture.frame, options, offsets=offsets, rates=rates)
-            if moved_periods(t, fitted, prob.streams, capture.frame) < REACH:
+            if fit_trusted(moved_periods(t, fitted, prob.streams, capture.frame)):
                 t = fitted
                 W, D = time_chain(t)
         rejected, used = now, weights
