@@ -8,6 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.clocked import robust_on_clocks
 from dloe_sfm.core.clocks import time_chain
 from dloe_sfm.core.events import (
     cluster_coordinates,
@@ -17,7 +18,7 @@ from dloe_sfm.core.events import (
 )
 from dloe_sfm.core.multitarget import constrained_clusters
 from dloe_sfm.core.options import Options, RobustLoss
-from dloe_sfm.core.pipeline import MOST_OF_AN_IMAGE, robust_on_clocks
+from dloe_sfm.core.pipeline import MOST_OF_AN_IMAGE
 from dloe_sfm.core.problem import build_problem, initialise, normalise
 from dloe_sfm.core.robust import (
     find_swaps,
@@ -264,7 +265,7 @@ def test_outliers_are_rejected(walking):
 
 
 def test_clocks_judge_the_observations_again(walking):
-    """``pipeline.robust_on_clocks`` on exact detections placed on the true clocks: a wrong
+    """``clocked.robust_on_clocks`` on exact detections placed on the true clocks: a wrong
     detection the robust rounds missed (40 px off) is rejected and a good one they rejected
     is admitted again; the clocks, fitted again without the wrong one, stay within 1/30 of a
     frame of the truth, and the points move back to it."""

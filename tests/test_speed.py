@@ -67,10 +67,10 @@ def test_stage_meter_times_every_stage_and_changes_nothing(assets_dir) -> None:
     capture, _ = simulate(walk, SimulationSettings(duration=0.6, rate=10, noise=1.0))
     options = Options(max_iterations=8, soft_iterations=4)
     plain = reconstruct(capture, options)
-    originals = (pipeline.solve_events, pipeline.clocked, alternation.sequence)
+    originals = (pipeline.solve_events, pipeline.clocks_and_offsets, alternation.sequence)
     with StageMeter() as meter:
         metered = reconstruct(capture, options)
-    assert (pipeline.solve_events, pipeline.clocked, alternation.sequence) == originals
+    assert (pipeline.solve_events, pipeline.clocks_and_offsets, alternation.sequence) == originals
     assert np.array_equal(metered.X, plain.X)
     assert np.array_equal(metered.order, plain.order)
     assert tuple(meter.seconds) == STAGES

@@ -12,8 +12,8 @@ import pytest
 
 from dloe_sfm import reconstruct
 from dloe_sfm.cli import main as cli_main
+from dloe_sfm.core.clocked import Placement, on_clocks, outlier_arrays
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.pipeline import Placement, on_clocks, outlier_arrays
 from dloe_sfm.core.sync import capture_fps, check_fps, with_fps
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import export_outputs
@@ -282,7 +282,7 @@ def test_dropped_clocks_time_the_event_and_widen_its_offsets(solved, tmp_path, l
 def test_dropped_clocks_order_their_event_and_leave_its_points(solved):
     """The events whose clocks the held-out check dropped keep DLOE's points, graph and time
     line (the embedding, which the sync report's disagreement measures against), and take
-    their order from the clocks (``pipeline.on_clocks``)."""
+    their order from the clocks (``clocked.on_clocks``)."""
     capture, _, _, _, result = solved
     graph = replace(result, clock=None)
     shifted = result.clock + np.where(capture.stream == 1, 1.0, 0.0)

@@ -29,7 +29,7 @@ MIN_OBSERVATIONS = 5
 def estimate_noise_px(res: np.ndarray) -> float:
     """Std (pixels) of 2D Gaussian noise whose median radius explains the median of the (N, P)
     residuals ``res`` (NaN: unobserved) of the hard-ray solution; 0 when fewer than four points
-    have ``MIN_OBSERVATIONS`` residuals. A candidate for :func:`soft_wins` to confirm."""
+    have ``MIN_OBSERVATIONS`` residuals. A candidate for ``decisions.soft_wins`` to confirm."""
     seen = np.isfinite(res)
     if (seen.sum(axis=0) >= MIN_OBSERVATIONS).sum() < 4:
         return 0.0
