@@ -11,12 +11,8 @@ import pytest
 from dloe_sfm.calibration import import_calibration
 from dloe_sfm.colmap import load_workspace
 from dloe_sfm.core.capture import Capture, pixel_rays, project
-from dloe_sfm.core.multitarget import (
-    aggregate,
-    associate,
-    detection_confidence,
-    subject_count,
-)
+from dloe_sfm.core.decisions import subject_count
+from dloe_sfm.core.multitarget import aggregate, associate, detection_confidence
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.pipeline import initial_events
 from dloe_sfm.core.problem import initialise

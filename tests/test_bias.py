@@ -7,8 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dloe_sfm.core.bias import GAIN, stream_offsets, without_offsets
+from dloe_sfm.core.bias import stream_offsets, without_offsets
 from dloe_sfm.core.capture import Capture, project
+from dloe_sfm.core.decisions import OFFSET_GAIN
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.synth import SimulationSettings, load_mocap
@@ -66,11 +67,11 @@ def project_shifted(cap: Capture, X: np.ndarray, k: int, e: np.ndarray) -> np.nd
 
 def test_noise_does_not_pass_for_offsets(walking):
     """Independent detection noise (2 px) and no offset: estimated on every other frame, the
-    medians do not predict the frames in between (the pipeline's :data:`GAIN` refuses them)."""
+    medians do not predict the frames in between (``decisions.OFFSET_GAIN`` refuses them)."""
     cap, X, _ = walking
     noisy = replace(cap, x=cap.x + np.random.default_rng(2).normal(0.0, 2.0, cap.x.shape))
     _, before, after = stream_offsets(noisy, X, np.zeros(cap.x.shape[:2], dtype=bool))
-    assert after > GAIN * before
+    assert after > OFFSET_GAIN * before
 
 
 def test_offsets_are_taken_out_before_the_clocks(walking):

@@ -10,6 +10,7 @@ import scipy.sparse as sp
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.clocked import robust_on_clocks
 from dloe_sfm.core.clocks import time_chain
+from dloe_sfm.core.decisions import MOST_OF_AN_IMAGE, spare_mispredicted
 from dloe_sfm.core.events import (
     cluster_coordinates,
     join_touching,
@@ -18,7 +19,6 @@ from dloe_sfm.core.events import (
 )
 from dloe_sfm.core.multitarget import constrained_clusters
 from dloe_sfm.core.options import Options, RobustLoss
-from dloe_sfm.core.pipeline import MOST_OF_AN_IMAGE
 from dloe_sfm.core.problem import build_problem, initialise, normalise
 from dloe_sfm.core.robust import (
     find_swaps,
@@ -27,7 +27,6 @@ from dloe_sfm.core.robust import (
     predicted,
     residuals_px,
     reweighted,
-    spare_mispredicted,
 )
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.xstep import x_step

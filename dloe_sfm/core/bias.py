@@ -11,12 +11,11 @@ along them (``clocks.chain_predicted``), which are other cameras' images: the me
 stream's images, of one point's residuals is that stream's offset of the point less what the
 streams around it share. It is kept only where it predicts: estimated on every other frame of
 each stream, it must shrink the residuals of the frames in between (both ways round) by
-:data:`GAIN`; interpolation errors of fast motion and noise do not repeat from frame to frame,
-an offset does. What one 3D shift of the point explains of them (its image motion in every
-observation, least squares) moves no ray against another: it is left to the point, and the
-offsets taken out are the smallest that explain the residuals (docs/method.md, "Stream
-offsets").
-"""
+``decisions.OFFSET_GAIN``; interpolation errors of fast motion and noise do not repeat from
+frame to frame, an offset does. What one 3D shift of the point explains of them (its image
+motion in every observation, least squares) moves no ray against another: it is left to the
+point, and the offsets taken out are the smallest that explain the residuals (docs/method.md,
+"Stream offsets")."""
 
 from __future__ import annotations
 
@@ -31,9 +30,6 @@ from .sequencing import stream_members
 MIN_IMAGES = 5
 """A stream's offset of a point is estimated from at least this many of its images' residuals
 in each half (every other frame): fewer leave it 0."""
-GAIN = 0.9
-"""The offsets are kept when, estimated on one half of each stream's frames, they bring the
-median residual of the other half to at most this share of what it is without them."""
 
 
 def _medians(res: np.ndarray, ok: np.ndarray, stream: np.ndarray) -> np.ndarray:

@@ -15,10 +15,17 @@ import numpy as np
 import scipy.sparse as sp
 
 from .alternation import soft_ray_weight
-from .bias import GAIN, stream_offsets, without_offsets
+from .bias import stream_offsets, without_offsets
 from .capture import Capture
 from .clocks import REACH, chain_predicted, fit_clocks, moved_periods, time_chain
-from .decisions import Verdict, clock_verdict, clocks_checked, fit_trusted, soft_rays_on_clocks
+from .decisions import (
+    Verdict,
+    clock_verdict,
+    clocks_checked,
+    fit_trusted,
+    offsets_kept,
+    soft_rays_on_clocks,
+)
 from .options import Options
 from .problem import Normalised, assemble, build_problem, normalise, parts
 from .result import Result
@@ -316,7 +323,7 @@ def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:
     size = np.linalg.norm(offsets, axis=2)
     if not size.any():
         return None
-    keep = after <= GAIN * before
+    keep = offsets_kept(before, after)
     logger.info("stream offsets of the detections, median %.2f px: residuals of the frames they "
                 "were not estimated on %.2f -> %.2f px (median), %s", np.median(size[size > 0]),
                 before, after, "taken out" if keep else "not taken out")

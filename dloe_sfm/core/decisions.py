@@ -36,6 +36,25 @@ HOLD_MARGIN = 1.05
 TIMING_MARGIN = 1.5
 """Clocks dropped for the points still time their event when their median held-out residual is
 at most this many times the graph's (:func:`clocks_time`)."""
+OFFSET_GAIN = 0.9
+"""The offsets are kept when, estimated on one half of each stream's frames, they bring the
+median residual of the other half to at most this share of what it is without them."""
+ROUND_GAIN = 0.95
+"""The robust rounds' first re-solve is kept when the median residual of the observations it
+used, less the floor the detection noise leaves, is at most this share of the plain solve's
+(:func:`robust_round_undone`)."""
+MOST_OF_AN_IMAGE = 0.5
+"""Share of an image's observations beyond which the robust rounds take a misprediction for the
+graph's, not the detector's: none of that image's observations is dropped
+(:func:`spare_mispredicted`; docs/method.md, "Lone photos")."""
+SUBJECT_IMAGES = 8
+"""Fewest images whose detections make a subject; also how many images must hold k detections
+for the capture to be taken as showing k people (one image with an extra detection, a person
+split into two partial skeletons, is no extra person)."""
+SUBJECT_VIEWS = 3
+"""Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
+view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
+a reflection)."""
 
 
 def soft_wins(hard_px: np.ndarray, soft_px: np.ndarray) -> bool:
@@ -173,3 +192,46 @@ def clocks_checked(options: Options, moved: float) -> bool:
     ``stream_clocks`` = ``auto``; with ``on`` only when the fit is not trusted
     (:func:`fit_trusted`), else they are kept."""
     return options.stream_clocks is Clocks.AUTO or not fit_trusted(moved)
+
+
+def offsets_kept(before: float, after: float) -> bool:
+    """Whether the streams' offsets of the detections are taken out: estimated on one half of
+    each stream's frames, they bring the median residual of the other half from ``before`` to
+    ``after`` (pixels, ``bias.stream_offsets``), at most :data:`OFFSET_GAIN` of it."""
+    return bool(after <= OFFSET_GAIN * before)
+
+
+def robust_round_undone(fit_px: float, expected_px: float, floor_px: float) -> bool:
+    """Whether the robust rounds' first re-solve is undone: the median residual ``fit_px`` of
+    the observations it used did not tighten to :data:`ROUND_GAIN` of the plain solve's
+    ``expected_px`` beyond the floor ``floor_px`` the detection noise leaves
+    (``noise.residual_floor_px``). Real outliers bend the graph, so removing them tightens the
+    fit; at coarse sampling the largest residuals are the graph's own interpolation errors
+    (docs/method.md, "Wrong detections (robust rounds)")."""
+    return fit_px - floor_px > ROUND_GAIN * (expected_px - floor_px)
+
+
+def spare_mispredicted(
+    weights: np.ndarray, visible: np.ndarray, share: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(weights with every observation of a mispredicted image back at 1, (N,) those images):
+    an image is mispredicted where more than ``share`` of its visible observations weigh below
+    1/2. A detector gets joints wrong, not a whole person: there the graph's prediction failed
+    (a wrong link), and dropping the detections would leave the image to float on that link."""
+    mispredicted = (weights < 0.5).sum(axis=1) > share * visible.sum(axis=1)
+    return np.where(mispredicted[:, None], 1.0, weights), mispredicted
+
+
+def subject_count(source: np.ndarray) -> int:
+    """The number of people a capture shows: the most detections that at least
+    :data:`SUBJECT_IMAGES` images hold (all its images, when it has fewer); ``source`` (N',):
+    each detection's image."""
+    held = np.sort(np.bincount(source)[np.unique(source)])[::-1]
+    return int(held[min(SUBJECT_IMAGES, held.size) - 1])
+
+
+def subject_support(streams: int) -> tuple[int, int]:
+    """(images, streams) a cluster of detections needs to be a subject, in a capture of
+    ``streams`` streams: :data:`SUBJECT_IMAGES`, and :data:`SUBJECT_VIEWS` or all the capture's
+    when it has fewer (docs/method.md, "Several people")."""
+    return SUBJECT_IMAGES, min(SUBJECT_VIEWS, streams)

@@ -22,6 +22,7 @@ from scipy.optimize import linear_sum_assignment
 
 from .alternation import Progress
 from .capture import Capture, project
+from .decisions import subject_count, subject_support
 from .events import cluster_coordinates
 from .options import Options
 from .pipeline import shape_space_graph, solve_single
@@ -50,16 +51,6 @@ def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
         confidence=conf, image_names=names,
     )
     return proxies, source, slot
-
-
-MIN_IMAGES = 8
-"""Fewest images whose detections make a subject; also how many images must hold k detections
-for the capture to be taken as showing k people (one image with an extra detection, a person
-split into two partial skeletons, is no extra person)."""
-MIN_VIEWS = 3
-"""Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
-view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
-a reflection)."""
 
 
 def constrained_clusters(
@@ -97,19 +88,13 @@ def constrained_clusters(
     return labels
 
 
-def subject_count(source: np.ndarray) -> int:
-    """The number of people a capture shows: the most detections that at least ``MIN_IMAGES``
-    images hold (all its images, when it has fewer); ``source`` (N',): each detection's image."""
-    held = np.sort(np.bincount(source)[np.unique(source)])[::-1]
-    return int(held[min(MIN_IMAGES, held.size) - 1])
-
-
 def associate(capture: Capture, options: Options) -> np.ndarray:
     """Steps 1-3: (N, M) subject of every detection (-1: none), subjects numbered by first image.
 
-    The number of subjects is :func:`subject_count`; with one, each image keeps its detection
-    of the largest total score. A subject needs ``MIN_IMAGES`` images and ``MIN_VIEWS`` streams
-    (all the capture's, when it has fewer); the detections of a cluster short of either support
+    The number of subjects is ``decisions.subject_count``; with one, each image keeps its
+    detection of the largest total score. A subject needs ``decisions.SUBJECT_IMAGES`` images
+    and ``decisions.SUBJECT_VIEWS`` streams (all the capture's, when it has fewer:
+    ``decisions.subject_support``); the detections of a cluster short of either support
     nobody and are left out (logged), except where one is its image's only detection. A capture
     in which no cluster passes keeps them all.
     """
@@ -125,16 +110,16 @@ def associate(capture: Capture, options: Options) -> np.ndarray:
     F = cluster_coordinates(W, k)
     labels = constrained_clusters(F, source, k)
     streams = capture.stream_ids[source]
-    views = min(MIN_VIEWS, np.unique(capture.stream_ids).size)
+    images, views = subject_support(np.unique(capture.stream_ids).size)
     lonely = np.bincount(source)[source] == 1
     seen = [(int(np.unique(source[labels == c]).size), int(np.unique(streams[labels == c]).size))
             for c in range(k)]
-    stray = [c for c in range(k) if seen[c][0] < MIN_IMAGES or seen[c][1] < views]
+    stray = [c for c in range(k) if seen[c][0] < images or seen[c][1] < views]
     if len(stray) < k:  # a capture too small for any subject to pass keeps them all
         for c in stray:
             logger.warning("%d detection(s) support no subject (in %d image(s), seen by %d "
                            "stream(s); a subject needs %d images and %d streams): left out",
-                           int(((labels == c) & ~lonely).sum()), *seen[c], MIN_IMAGES, views)
+                           int(((labels == c) & ~lonely).sum()), *seen[c], images, views)
         labels[np.isin(labels, stray) & ~lonely] = -1
     ranked = sorted(np.unique(labels[labels >= 0]), key=lambda c: np.argmax(labels == c))
     remap = np.full(k, -1)

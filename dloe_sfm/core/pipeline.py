@@ -24,7 +24,10 @@ from .alternation import (
 from .capture import Capture
 from .clocked import clocks_and_offsets
 from .decisions import (
+    MOST_OF_AN_IMAGE,
+    robust_round_undone,
     soft_rays_kept,
+    spare_mispredicted,
 )
 from .events import segment_events
 from .noise import estimate_noise_px, residual_floor_px
@@ -40,17 +43,11 @@ from .robust import (
     predicted,
     residuals_px,
     reweighted,
-    spare_mispredicted,
 )
 from .sequencing import order_from_embedding
 from .wstep import select_candidates, w_step
 
 logger = logging.getLogger("dloe_sfm")
-
-MOST_OF_AN_IMAGE = 0.5
-"""Share of an image's observations beyond which the robust rounds take a misprediction for the
-graph's, not the detector's: none of that image's observations is dropped
-(``robust.spare_mispredicted``; docs/method.md, "Lone photos")."""
 
 
 def solve_single(
@@ -287,19 +284,16 @@ def robust_rounds(
 
     Each round predicts every observation from the graph (``W X``), exchanges symmetric pairs
     that fit far better swapped, weights every observation by the robust loss of its residual
-    (pixels), drops those weighted below 1/2 and re-solves from a fresh initialisation (one
-    from shapes bent by the outliers stays bent). The first re-solve is kept only if it
-    predicts the observations it used at least 5 % better (median residual) than the plain
-    solve, beyond what the detection noise leaves (``noise.residual_floor_px``): real outliers
-    bend the graph, so removing them tightens the fit, while at coarse sampling the largest
-    residuals are the graph's own interpolation errors and dropping them helps nothing
-    (docs/method.md, "Wrong detections (robust rounds)"). Stops when no pair was swapped and the
-    rejected set changed by at most 0.1 % of the observations (1 % with soft rays: under noise
-    it drifts by a few tenths of a percent a round without changing the result).
-    Returns ``result`` re-solved, with ``outliers`` the observations the final solve left out
-    and ``swaps`` every exchange kept, and the capture it was solved on (swaps undone,
-    observations reweighted).
-    """
+    (pixels), drops those weighted below 1/2 and re-solves from a fresh initialisation (one from
+    shapes bent by the outliers stays bent). The first re-solve is kept only if it predicts the
+    observations it used at least 5 % better (median residual) than the plain solve, beyond what
+    the detection noise leaves (``decisions.robust_round_undone``). An image the graph
+    mispredicts in most of its observations keeps them all (``decisions.spare_mispredicted``).
+    Stops when no pair was swapped and the rejected set changed by at most 0.1 % of the
+    observations (1 % with soft rays: under noise it drifts by a few tenths of a percent a round
+    without changing the result). Returns ``result`` re-solved, with ``outliers`` the
+    observations the final solve left out and ``swaps`` every exchange kept, and the capture it
+    was solved on (swaps undone, observations reweighted)."""
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
     if not robust and (pairs is None or pairs.size == 0):
@@ -312,9 +306,8 @@ def robust_rounds(
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
-        if it == 1 and (fit := float(np.nanmedian(res[~rejected]))) - floor > 0.95 * (
-            expected - floor
-        ):
+        if it == 1 and robust_round_undone(fit := float(np.nanmedian(res[~rejected])), expected,
+                                           floor):
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
                         "%.2f -> %.2f px, %.2f px of it noise)", expected, fit, floor)
             result, current, swaps, solved = plain, capture, swaps[:0], capture

@@ -63,17 +63,6 @@ def loss_weights(res: np.ndarray, scale: np.ndarray, loss: RobustLoss) -> np.nda
     return np.ones_like(r)
 
 
-def spare_mispredicted(
-    weights: np.ndarray, visible: np.ndarray, share: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(weights with every observation of a mispredicted image back at 1, (N,) those images):
-    an image is mispredicted where more than ``share`` of its visible observations weigh below
-    1/2. A detector gets joints wrong, not a whole person: there the graph's prediction failed
-    (a wrong link), and dropping the detections would leave the image to float on that link."""
-    mispredicted = (weights < 0.5).sum(axis=1) > share * visible.sum(axis=1)
-    return np.where(mispredicted[:, None], 1.0, weights), mispredicted
-
-
 def find_swaps(
     capture: Capture, X_pred: np.ndarray, pairs: np.ndarray, scale: np.ndarray
 ) -> np.ndarray:
