@@ -1,5 +1,32 @@
-"""The solver's decisions: the model choices made on held-out detections (docs/method.md,
-"Held-out checks"; the evidence: ``core.heldout``).
+"""The solver's decisions: every choice between two models that the data make, in one place
+(docs/method.md, "Where the decisions are").
+
+Two choices a user cannot make (are the detections exact? do the videos' clocks help?) are asked
+of the data: each candidate predicts detections it was not given (``core.heldout``: folds of
+observations or of whole images, on at most ``heldout.CHECK_IMAGES`` images) and the better one
+is kept. The other rules read residuals or counts the solve has anyway. Each function answers
+one question; the thresholds are this module's constants.
+
+====================  ===================  ============================  ========================
+decision              function             evidence                      called from
+====================  ===================  ============================  ========================
+how many people       subject_count        detections per image          multitarget.associate
+cluster is a person   subject_support      its images and streams        multitarget.associate
+soft or hard rays     soft_rays_kept       held-out px, obs. folds       pipeline.solve_event
+robust round kept     robust_round_undone  residual vs the plain solve   pipeline.robust_rounds
+image mispredicted    spare_mispredicted   share of it rejected          pipeline.robust_rounds
+soft rays on clocks   soft_rays_on_clocks  held-out px, image folds      clocked.placements
+clocks checked        clocks_checked       option, how far fit moved     clocked.verdicts
+clock refit kept      fit_trusted          how far the fit moved         clocked.robust_on_clocks
+clocks or graph       clock_verdict        held-out px, image folds      clocked.verdicts
+offsets taken out     offsets_kept         px of frames held out         clocked.clock_offsets
+====================  ===================  ============================  ========================
+
+The held-out rules: :func:`soft_wins` (soft rays, :data:`SOFT_MARGIN`), :func:`clocks_hold` and
+:func:`clocks_time` (clocks kept, or timing their event: :data:`HOLD_MARGIN`,
+:data:`TIMING_MARGIN`). Not here: where the events of lone photos are joined
+(``events.join_touching``): a rule inside the event segmentation, which the solves this module's
+checks run call, so it stays below them in ``events.py``.
 """
 
 from __future__ import annotations
@@ -21,9 +48,25 @@ from .robust import predicted, residuals_px
 
 logger = logging.getLogger("dloe_sfm")
 
+SUBJECT_IMAGES = 8
+"""Fewest images whose detections make a subject; also how many images must hold k detections
+for the capture to be taken as showing k people (one image with an extra detection, a person
+split into two partial skeletons, is no extra person)."""
+SUBJECT_VIEWS = 3
+"""Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
+view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
+a reflection)."""
 SOFT_MARGIN = 0.95
 """Soft rays are taken when their median held-out residual is below this fraction of hard
 rays' (a tie keeps the detections exact)."""
+ROUND_GAIN = 0.95
+"""The robust rounds' first re-solve is kept when the median residual of the observations it
+used, less the floor the detection noise leaves, is at most this share of the plain solve's
+(:func:`robust_round_undone`)."""
+MOST_OF_AN_IMAGE = 0.5
+"""Share of an image's observations beyond which the robust rounds take a misprediction for the
+graph's, not the detector's: none of that image's observations is dropped
+(:func:`spare_mispredicted`; docs/method.md, "Lone photos")."""
 CHAIN_MIN_PX = 1.0
 """Soft rays along the stream clocks (:func:`soft_rays_on_clocks`) are tried from this level up.
 Below a pixel, the level the graph's fit leaves is the SfM cameras' error and the fit's own,
@@ -39,28 +82,21 @@ at most this many times the graph's (:func:`clocks_time`)."""
 OFFSET_GAIN = 0.9
 """The offsets are kept when, estimated on one half of each stream's frames, they bring the
 median residual of the other half to at most this share of what it is without them."""
-ROUND_GAIN = 0.95
-"""The robust rounds' first re-solve is kept when the median residual of the observations it
-used, less the floor the detection noise leaves, is at most this share of the plain solve's
-(:func:`robust_round_undone`)."""
-MOST_OF_AN_IMAGE = 0.5
-"""Share of an image's observations beyond which the robust rounds take a misprediction for the
-graph's, not the detector's: none of that image's observations is dropped
-(:func:`spare_mispredicted`; docs/method.md, "Lone photos")."""
-SUBJECT_IMAGES = 8
-"""Fewest images whose detections make a subject; also how many images must hold k detections
-for the capture to be taken as showing k people (one image with an extra detection, a person
-split into two partial skeletons, is no extra person)."""
-SUBJECT_VIEWS = 3
-"""Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
-view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
-a reflection)."""
 
 
-def soft_wins(hard_px: np.ndarray, soft_px: np.ndarray) -> bool:
-    """Whether soft rays predicted the held-out detections better: median residual below
-    ``SOFT_MARGIN`` times hard rays' (both (M,) pixels over the same observations, NaN ignored)."""
-    return bool(np.nanmedian(soft_px) < SOFT_MARGIN * np.nanmedian(hard_px))
+def subject_count(source: np.ndarray) -> int:
+    """The number of people a capture shows: the most detections that at least
+    :data:`SUBJECT_IMAGES` images hold (all its images, when it has fewer); ``source`` (N',):
+    each detection's image."""
+    held = np.sort(np.bincount(source)[np.unique(source)])[::-1]
+    return int(held[min(SUBJECT_IMAGES, held.size) - 1])
+
+
+def subject_support(streams: int) -> tuple[int, int]:
+    """(images, streams) a cluster of detections needs to be a subject, in a capture of
+    ``streams`` streams: :data:`SUBJECT_IMAGES`, and :data:`SUBJECT_VIEWS` or all the capture's
+    when it has fewer (docs/method.md, "Several people")."""
+    return SUBJECT_IMAGES, min(SUBJECT_VIEWS, streams)
 
 
 def soft_rays_kept(
@@ -80,6 +116,33 @@ def soft_rays_kept(
                 "noise %.2f px: %s", np.nanmedian(hard_px), options.noise_px,
                 np.nanmedian(soft_px), "soft rays kept" if wins else "hard rays kept")
     return wins
+
+
+def soft_wins(hard_px: np.ndarray, soft_px: np.ndarray) -> bool:
+    """Whether soft rays predicted the held-out detections better: median residual below
+    ``SOFT_MARGIN`` times hard rays' (both (M,) pixels over the same observations, NaN ignored)."""
+    return bool(np.nanmedian(soft_px) < SOFT_MARGIN * np.nanmedian(hard_px))
+
+
+def robust_round_undone(fit_px: float, expected_px: float, floor_px: float) -> bool:
+    """Whether the robust rounds' first re-solve is undone: the median residual ``fit_px`` of
+    the observations it used did not tighten to :data:`ROUND_GAIN` of the plain solve's
+    ``expected_px`` beyond the floor ``floor_px`` the detection noise leaves
+    (``noise.residual_floor_px``). Real outliers bend the graph, so removing them tightens the
+    fit; at coarse sampling the largest residuals are the graph's own interpolation errors
+    (docs/method.md, "Wrong detections (robust rounds)")."""
+    return fit_px - floor_px > ROUND_GAIN * (expected_px - floor_px)
+
+
+def spare_mispredicted(
+    weights: np.ndarray, visible: np.ndarray, share: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(weights with every observation of a mispredicted image back at 1, (N,) those images):
+    an image is mispredicted where more than ``share`` of its visible observations weigh below
+    1/2. A detector gets joints wrong, not a whole person: there the graph's prediction failed
+    (a wrong link), and dropping the detections would leave the image to float on that link."""
+    mispredicted = (weights < 0.5).sum(axis=1) > share * visible.sum(axis=1)
+    return np.where(mispredicted[:, None], 1.0, weights), mispredicted
 
 
 def soft_rays_on_clocks(
@@ -112,34 +175,18 @@ def soft_rays_on_clocks(
     return (candidate, soft_px) if wins else (0.0, hard_px)
 
 
-def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
-    """Whether the clocks predict held-out images' detections about as well as DLOE's graph: a
-    median residual at most :data:`HOLD_MARGIN` times the graph's, or at least half of the
-    detections predicted at least as well. ``graph_px``, ``clock_px``: the same detections'
-    residuals, pixels, NaN ignored (``heldout.held_out_px``). Near-ties go to the clocks, a
-    few numbers per stream where the graph has weights for every image: on exact data both
-    models predict at the floor the cameras leave, where the medians alone decide by chance,
-    and under detector noise the graph's many neighbours average the held-out detections' noise
-    better than the chain's two, while the timing hardly shows (docs/method.md, "Far fits and
-    near-ties")."""
-    return bool(np.nanmedian(clock_px) <= HOLD_MARGIN * np.nanmedian(graph_px)
-                or as_good_share(graph_px, clock_px) >= 0.5)
+def clocks_checked(options: Options, moved: float) -> bool:
+    """Whether an event's clocks face the held-out check (:func:`clock_verdict`): always with
+    ``stream_clocks`` = ``auto``; with ``on`` only when the fit is not trusted
+    (:func:`fit_trusted`), else they are kept."""
+    return options.stream_clocks is Clocks.AUTO or not fit_trusted(moved)
 
 
-def clocks_time(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
-    """Whether clocks that do not hold (:func:`clocks_hold`) lost narrowly enough to still time
-    their event: a median held-out residual at most :data:`TIMING_MARGIN` times the graph's
-    (arguments as :func:`clocks_hold`). Within it the loss is what the graph's many neighbours
-    gain by averaging the detections' noise, which a frame of timing hardly moves; a clock fit
-    that failed loses by twice and more (docs/method.md, "Times from dropped clocks")."""
-    return bool(np.nanmedian(clock_px) <= TIMING_MARGIN * np.nanmedian(graph_px))
-
-
-def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:
-    """Share of the detections with both residuals (pixels) that the clocks predict at least as
-    well as the graph (0 with none)."""
-    both = np.isfinite(graph_px) & np.isfinite(clock_px)
-    return float(np.mean(clock_px[both] <= graph_px[both])) if both.any() else 0.0
+def fit_trusted(moved: float) -> bool:
+    """Whether a clock fit moved no stream ``clocks.REACH`` frame periods or more from its first
+    guess (``moved``: ``clocks.moved_periods``): beyond, the rays may not pin its clocks, or the
+    first guess was that far off (docs/method.md, "Stream clocks")."""
+    return moved < REACH
 
 
 class Verdict(Enum):
@@ -180,18 +227,34 @@ def clock_verdict(
     return verdict
 
 
-def fit_trusted(moved: float) -> bool:
-    """Whether a clock fit moved no stream ``clocks.REACH`` frame periods or more from its first
-    guess (``moved``: ``clocks.moved_periods``): beyond, the rays may not pin its clocks, or the
-    first guess was that far off (docs/method.md, "Stream clocks")."""
-    return moved < REACH
+def clocks_hold(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether the clocks predict held-out images' detections about as well as DLOE's graph: a
+    median residual at most :data:`HOLD_MARGIN` times the graph's, or at least half of the
+    detections predicted at least as well. ``graph_px``, ``clock_px``: the same detections'
+    residuals, pixels, NaN ignored (``heldout.held_out_px``). Near-ties go to the clocks, a
+    few numbers per stream where the graph has weights for every image: on exact data both
+    models predict at the floor the cameras leave, where the medians alone decide by chance,
+    and under detector noise the graph's many neighbours average the held-out detections' noise
+    better than the chain's two, while the timing hardly shows (docs/method.md, "Far fits and
+    near-ties")."""
+    return bool(np.nanmedian(clock_px) <= HOLD_MARGIN * np.nanmedian(graph_px)
+                or as_good_share(graph_px, clock_px) >= 0.5)
 
 
-def clocks_checked(options: Options, moved: float) -> bool:
-    """Whether an event's clocks face the held-out check (:func:`clock_verdict`): always with
-    ``stream_clocks`` = ``auto``; with ``on`` only when the fit is not trusted
-    (:func:`fit_trusted`), else they are kept."""
-    return options.stream_clocks is Clocks.AUTO or not fit_trusted(moved)
+def clocks_time(graph_px: np.ndarray, clock_px: np.ndarray) -> bool:
+    """Whether clocks that do not hold (:func:`clocks_hold`) lost narrowly enough to still time
+    their event: a median held-out residual at most :data:`TIMING_MARGIN` times the graph's
+    (arguments as :func:`clocks_hold`). Within it the loss is what the graph's many neighbours
+    gain by averaging the detections' noise, which a frame of timing hardly moves; a clock fit
+    that failed loses by twice and more (docs/method.md, "Times from dropped clocks")."""
+    return bool(np.nanmedian(clock_px) <= TIMING_MARGIN * np.nanmedian(graph_px))
+
+
+def as_good_share(graph_px: np.ndarray, clock_px: np.ndarray) -> float:
+    """Share of the detections with both residuals (pixels) that the clocks predict at least as
+    well as the graph (0 with none)."""
+    both = np.isfinite(graph_px) & np.isfinite(clock_px)
+    return float(np.mean(clock_px[both] <= graph_px[both])) if both.any() else 0.0
 
 
 def offsets_kept(before: float, after: float) -> bool:
@@ -199,39 +262,3 @@ def offsets_kept(before: float, after: float) -> bool:
     each stream's frames, they bring the median residual of the other half from ``before`` to
     ``after`` (pixels, ``bias.stream_offsets``), at most :data:`OFFSET_GAIN` of it."""
     return bool(after <= OFFSET_GAIN * before)
-
-
-def robust_round_undone(fit_px: float, expected_px: float, floor_px: float) -> bool:
-    """Whether the robust rounds' first re-solve is undone: the median residual ``fit_px`` of
-    the observations it used did not tighten to :data:`ROUND_GAIN` of the plain solve's
-    ``expected_px`` beyond the floor ``floor_px`` the detection noise leaves
-    (``noise.residual_floor_px``). Real outliers bend the graph, so removing them tightens the
-    fit; at coarse sampling the largest residuals are the graph's own interpolation errors
-    (docs/method.md, "Wrong detections (robust rounds)")."""
-    return fit_px - floor_px > ROUND_GAIN * (expected_px - floor_px)
-
-
-def spare_mispredicted(
-    weights: np.ndarray, visible: np.ndarray, share: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(weights with every observation of a mispredicted image back at 1, (N,) those images):
-    an image is mispredicted where more than ``share`` of its visible observations weigh below
-    1/2. A detector gets joints wrong, not a whole person: there the graph's prediction failed
-    (a wrong link), and dropping the detections would leave the image to float on that link."""
-    mispredicted = (weights < 0.5).sum(axis=1) > share * visible.sum(axis=1)
-    return np.where(mispredicted[:, None], 1.0, weights), mispredicted
-
-
-def subject_count(source: np.ndarray) -> int:
-    """The number of people a capture shows: the most detections that at least
-    :data:`SUBJECT_IMAGES` images hold (all its images, when it has fewer); ``source`` (N',):
-    each detection's image."""
-    held = np.sort(np.bincount(source)[np.unique(source)])[::-1]
-    return int(held[min(SUBJECT_IMAGES, held.size) - 1])
-
-
-def subject_support(streams: int) -> tuple[int, int]:
-    """(images, streams) a cluster of detections needs to be a subject, in a capture of
-    ``streams`` streams: :data:`SUBJECT_IMAGES`, and :data:`SUBJECT_VIEWS` or all the capture's
-    when it has fewer (docs/method.md, "Several people")."""
-    return SUBJECT_IMAGES, min(SUBJECT_VIEWS, streams)
