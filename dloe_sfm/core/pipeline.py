@@ -3,7 +3,7 @@ implemented"): :func:`solve_single` initialises, finds the events (:func:`initia
 solves each (:func:`solve_events`, :func:`solve_event`: hard rays, the noise level, soft rays,
 the order), re-solves against wrong detections (:func:`robust_rounds`) and places the events on
 their streams' clocks (``clocked.clocks_and_offsets``); ``solver.reconstruct`` then assesses
-every image. The choices the data make along the way are ``core.decisions``'."""
+every image. The choices the data make along the way are in ``core.decisions``."""
 
 from __future__ import annotations
 
