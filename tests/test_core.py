@@ -12,9 +12,11 @@ from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.embedding import (
     BACKBONE_NEIGHBOURS,
     backbone_embedding,
+    geodesic_embedding,
     line_embedding,
     mds_embedding,
     neighbour_graph,
+    shape_embedding,
 )
 from dloe_sfm.core.init import (
     PARTNER_STREAMS,
@@ -24,6 +26,7 @@ from dloe_sfm.core.init import (
     pseudo_triangulate,
 )
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.pipeline import solve_events
 from dloe_sfm.core.problem import build_problem, initialise
 from dloe_sfm.core.sequencing import (
     REFERENCE_STREAMS,
@@ -514,6 +517,36 @@ def test_backbone_orders_lone_photos_where_the_mds_line_folds(assets_dir):
     G = neighbour_graph(truth.X.reshape(200, -1), BACKBONE_NEIGHBOURS)
     assert sp.issparse(G) and G.nnz <= 2 * 200 * BACKBONE_NEIGHBOURS
     assert connected_components(G, directed=False)[0] == 1
+
+
+def test_noisy_lone_photos_are_ordered_along_the_geodesic_line(assets_dir):
+    """300 lone photos of a walk under the detector model: the initial shapes scatter far more
+    than a step, the spanning tree's longest path zigzags across them (|tau| about 0.5) and the
+    geodesic line runs along them; the shorter path through the shapes picks it."""
+    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    for seed in (0, 1):
+        cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=300, seed=seed,
+                                                      detector="openpose"))
+        X = initialise(cap, Options())
+        tau = {fn: kendall_tau(order_from_embedding(fn(X)), truth.t)
+               for fn in (backbone_embedding, geodesic_embedding, shape_embedding)}
+        assert tau[backbone_embedding] < 0.6
+        assert tau[geodesic_embedding] > 0.85
+        assert tau[shape_embedding] == tau[geodesic_embedding]
+
+
+def test_events_of_lone_photos_follow_their_shapes(assets_dir):
+    """Lone photos of one jump cut in three events, the middle third first: the events are put
+    in the order of their shapes' line and turned along it, so the whole order is the time
+    order (concatenated as numbered, |tau| is about 0.6 whichever way each runs)."""
+    seq = load_mocap(assets_dir / "mocap" / "jumping_1.npz")
+    cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=150, duration=2.0,
+                                                  seed=1))
+    thirds = np.searchsorted(np.quantile(truth.t, [1 / 3, 2 / 3]), truth.t)
+    labels = np.array([1, 0, 2])[thirds]
+    r = solve_events(cap, Options(), labels, initialise(cap, Options()))
+    np.testing.assert_array_equal(r.events, labels)
+    assert kendall_tau(r.order, truth.t) >= 0.99
 
 
 def test_lone_photos_from_anywhere_are_ordered_and_reconstructed(assets_dir):

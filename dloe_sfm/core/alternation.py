@@ -14,8 +14,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from .capture import Capture
-from .embedding import backbone_embedding, line_embedding, mds_embedding
-from .events import SHORT_RUN
+from .embedding import line_embedding, mds_embedding, shape_embedding
+from .events import without_videos
 from .options import Distance, Embedding, Options
 from .problem import Normalised
 from .robust import residuals_px
@@ -54,18 +54,17 @@ def sequence(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
-    With the ``affine`` embedding and no two videos (streams of more than ``events.SHORT_RUN``
-    images), both are the shapes' backbone (``embedding.backbone_embedding``); with video
+    With the ``affine`` embedding and no two videos (``events.without_videos``), both are the
+    shapes' line (``embedding.shape_embedding``); with video
     streams, both come from the streams' affine clocks
     (the prior rescaled to the MDS embedding's length units, which the T term needs; that scale
     is measured on at most ``MDS_SAMPLE`` images spread over the capture, so no N x N table is
     made). Otherwise the loop uses classical MDS of the distances (fast) and ``final`` computes
     the order with ``options.embedding``.
     """
-    if options.embedding is Embedding.AFFINE and (
-            np.bincount(prob.streams) > SHORT_RUN).sum() < 2:
+    if options.embedding is Embedding.AFFINE and without_videos(prob.streams):
         # no two videos (lone photos, bursts): the shapes alone order the images
-        f = orient(backbone_embedding(X), prob.streams, frames)
+        f = orient(shape_embedding(X), prob.streams, frames)
         return f, f
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
     placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None

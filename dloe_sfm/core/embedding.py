@@ -1,6 +1,7 @@
 """Line embeddings of the images: of a distance table (classical MDS, spectral ranking, an
 approximate shortest Hamiltonian path), and of the shapes alone (the backbone of their
-nearest-neighbour graph, for images with no stream order; docs/method.md, "Lone photos"). The
+nearest-neighbour graph and its geodesic line, for images with no stream order; docs/method.md,
+"Lone photos"). The
 distances and the streams' placements are in :mod:`.sequencing`.
 
 Shapes: N images, P points, X (N, P, 3); Z (N, N) distances.
@@ -19,7 +20,9 @@ from .options import Embedding
 
 BACKBONE_NEIGHBOURS = 10
 """Nearest shapes every image is linked to in the graph whose spanning tree
-:func:`backbone_embedding` follows."""
+:func:`backbone_embedding` follows (and whose shortest paths :func:`geodesic_embedding`)."""
+GEODESIC_LANDMARKS = 60
+"""Landmark images of :func:`geodesic_embedding` (shortest-path sweeps)."""
 
 
 def neighbour_graph(F: np.ndarray, k: int) -> sp.csr_matrix:
@@ -73,6 +76,53 @@ def backbone_embedding(X: np.ndarray, k: int = BACKBONE_NEIGHBOURS) -> np.ndarra
         if not on_path[i]:
             f[i] = f[pred[i]]
     return f
+
+
+def geodesic_embedding(X: np.ndarray, k: int = BACKBONE_NEIGHBOURS,
+                       landmarks: int = GEODESIC_LANDMARKS) -> np.ndarray:
+    """Every image's coordinate of landmark Isomap to one dimension (de Silva & Tenenbaum 2003):
+    classical MDS of the shortest-path distances through the shapes' ``k``-nearest-neighbour
+    graph from ``landmarks`` images (farthest-point sampled), every image placed from its
+    distances to them (X's units). Sparse: ``landmarks`` shortest-path sweeps of O(N k) edges.
+
+    The paths run along the middle of the noisy tube of shapes a motion leaves, where the
+    spanning tree of :func:`backbone_embedding` zigzags across it; a motion that comes back
+    near a pose folds it (the shortcut joins the ends of a loop)."""
+    n = X.shape[0]
+    if n < 3:
+        return np.arange(n, dtype=np.float64)
+    G = neighbour_graph(X.reshape(n, -1), k)
+    start = int(np.argmax(shortest_path(G, directed=False, indices=0)))  # an end of the motion
+    chosen, rows = [start], [shortest_path(G, directed=False, indices=start)]
+    nearest = rows[0]
+    while len(chosen) < min(landmarks, n) and nearest.max() > 0:
+        chosen.append(int(np.argmax(nearest)))
+        rows.append(shortest_path(G, directed=False, indices=chosen[-1]))
+        nearest = np.minimum(nearest, rows[-1])
+    return _landmark_mds(np.array(rows) ** 2, np.array(chosen))
+
+
+def _landmark_mds(sq: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """One-dimensional landmark MDS of squared distances ``sq`` (L, N) from the L ``landmarks``
+    (image indices) to every image."""
+    among = sq[:, landmarks]
+    val, vec = _top_eigenpairs(
+        -0.5 * (among - among.mean(axis=0) - among.mean(axis=1)[:, None] + among.mean()), 1)
+    return -0.5 * (vec[:, 0] / np.sqrt(max(val[0], np.finfo(float).tiny))) @ (
+        sq - among.mean(axis=1)[:, None])
+
+
+def path_length(X: np.ndarray, f: np.ndarray) -> float:
+    """Length of the path through the shapes X (N, P, 3) in the order of ``f`` (X's units)."""
+    F = X.reshape(X.shape[0], -1)[np.argsort(f, kind="stable")]
+    return float(np.linalg.norm(np.diff(F, axis=0), axis=1).sum())
+
+
+def shape_embedding(X: np.ndarray) -> np.ndarray:
+    """The sequencing of images with no stream order: of :func:`backbone_embedding` and
+    :func:`geodesic_embedding`, the one whose order threads the shapes on the shorter path (the
+    seriation criterion of the shortest Hamiltonian path)."""
+    return min((backbone_embedding(X), geodesic_embedding(X)), key=lambda f: path_length(X, f))
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:

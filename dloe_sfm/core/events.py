@@ -25,6 +25,12 @@ TOUCH_STEPS = 3.0
 an image to its nearest shape) of each other are one motion: they are joined."""
 
 
+def without_videos(streams: np.ndarray) -> bool:
+    """True when fewer than two streams (ids >= 0 per camera) hold more than ``SHORT_RUN``
+    images: lone photos and bursts, whose order and events only the shapes can tell."""
+    return bool((np.bincount(streams) > SHORT_RUN).sum() < 2)
+
+
 def symmetrised(A: sp.spmatrix) -> sp.csr_matrix:
     """|A| + |A|^T without the diagonal: the undirected graph of an affinity."""
     G = sp.csr_matrix(abs(A) + abs(A).T)

@@ -33,7 +33,8 @@ from .decisions import (
     soft_rays_kept,
     spare_mispredicted,
 )
-from .events import segment_events
+from .embedding import shape_embedding
+from .events import segment_events, without_videos
 from .noise import estimate_noise_px, residual_floor_px
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
@@ -48,7 +49,7 @@ from .robust import (
     residuals_px,
     reweighted,
 )
-from .sequencing import order_from_embedding
+from .sequencing import order_from_embedding, orient
 from .wstep import select_candidates, w_step
 
 logger = logging.getLogger("dloe_sfm")
@@ -178,11 +179,17 @@ def solve_events(
             progress(r.nit, r.nit, {"cost": r.cost_history[-1], "change": r.change_history[-1]})
         results.append(r)
         X[idx], D[idx] = r.X, r.D
-        embedding[idx] = r.embedding - r.embedding.min() + offset
-        offset = embedding[idx].max() + 1.0
-        order.append(idx[r.order])
         A_parts.append(parts(r.A, idx))
         W_parts.append(parts(r.W, idx))
+    sequence, flips = range(len(events)), [False] * len(events)
+    if without_videos(capture.stream_ids):
+        sequence, flips = events_along_shapes(capture, X, events, results)
+    for e in sequence:
+        idx, r = events[e], results[e]
+        f = -r.embedding if flips[e] else r.embedding
+        embedding[idx] = f - f.min() + offset
+        offset = embedding[idx].max() + 1.0
+        order.append(idx[r.order[::-1] if flips[e] else r.order])
     return Result(
         X=X,
         order=np.concatenate(order),
@@ -195,6 +202,26 @@ def solve_events(
         scale=results[0].scale,
         **merged_history(results, "event"),
     )
+
+
+def events_along_shapes(
+    capture: Capture, X: np.ndarray, events: list[np.ndarray], results: list[Result]
+) -> tuple[np.ndarray, list[bool]]:
+    """The order of events of lone photos and bursts, and which to reverse: along the line of
+    all their solved shapes ``X`` (``embedding.shape_embedding``, oriented by the bursts), by
+    each event's median place on it, every event's own order turned to run the same way.
+
+    Shapes cannot tell a time gap from fast motion seen by few photos, so such events may be
+    one motion cut apart; then this is its order (a true gap's order no image can tell)."""
+    g = orient(shape_embedding(X), capture.stream_ids, capture.frame)
+    places = [float(np.median(g[idx])) for idx in events]
+    flips = [bool(np.corrcoef(r.embedding, g[idx])[0, 1] < 0) if idx.size > 1 else False
+             for idx, r in zip(events, results, strict=True)]
+    sequence = np.argsort(places, kind="stable")
+    if not np.array_equal(sequence, np.arange(len(events))) or any(flips):
+        logger.info("events of lone photos ordered along their shapes: %s",
+                    ", ".join(f"{e}{' (reversed)' if flips[e] else ''}" for e in sequence))
+    return sequence, flips
 
 
 def _solve_event_task(task: tuple[Capture, Options, np.ndarray | None]) -> Result:
