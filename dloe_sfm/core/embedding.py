@@ -62,7 +62,13 @@ def backbone_embedding(X: np.ndarray, k: int = BACKBONE_NEIGHBOURS) -> np.ndarra
     n = X.shape[0]
     if n < 3:
         return np.arange(n, dtype=np.float64)
-    tree = minimum_spanning_tree(neighbour_graph(X.reshape(n, -1), k))
+    return _backbone(neighbour_graph(X.reshape(n, -1), k))
+
+
+def _backbone(G: sp.csr_matrix) -> np.ndarray:
+    """:func:`backbone_embedding` of the shapes' neighbour graph ``G``."""
+    n = G.shape[0]
+    tree = minimum_spanning_tree(G)
     tree = tree + tree.T
     first = int(np.argmax(shortest_path(tree, directed=False, indices=0)))
     dist, pred = shortest_path(tree, directed=False, indices=first, return_predecessors=True)
@@ -91,11 +97,15 @@ def geodesic_embedding(X: np.ndarray, k: int = BACKBONE_NEIGHBOURS,
     n = X.shape[0]
     if n < 3:
         return np.arange(n, dtype=np.float64)
-    G = neighbour_graph(X.reshape(n, -1), k)
+    return _geodesic(neighbour_graph(X.reshape(n, -1), k), landmarks)
+
+
+def _geodesic(G: sp.csr_matrix, landmarks: int = GEODESIC_LANDMARKS) -> np.ndarray:
+    """:func:`geodesic_embedding` of the shapes' neighbour graph ``G``."""
     start = int(np.argmax(shortest_path(G, directed=False, indices=0)))  # an end of the motion
     chosen, rows = [start], [shortest_path(G, directed=False, indices=start)]
     nearest = rows[0]
-    while len(chosen) < min(landmarks, n) and nearest.max() > 0:
+    while len(chosen) < min(landmarks, G.shape[0]) and nearest.max() > 0:
         chosen.append(int(np.argmax(nearest)))
         rows.append(shortest_path(G, directed=False, indices=chosen[-1]))
         nearest = np.minimum(nearest, rows[-1])
@@ -121,8 +131,12 @@ def path_length(X: np.ndarray, f: np.ndarray) -> float:
 def shape_embedding(X: np.ndarray) -> np.ndarray:
     """The sequencing of images with no stream order: of :func:`backbone_embedding` and
     :func:`geodesic_embedding`, the one whose order threads the shapes on the shorter path (the
-    seriation criterion of the shortest Hamiltonian path)."""
-    return min((backbone_embedding(X), geodesic_embedding(X)), key=lambda f: path_length(X, f))
+    seriation criterion of the shortest Hamiltonian path). Both on one neighbour graph."""
+    n = X.shape[0]
+    if n < 3:
+        return np.arange(n, dtype=np.float64)
+    G = neighbour_graph(X.reshape(n, -1), BACKBONE_NEIGHBOURS)
+    return min((_backbone(G), _geodesic(G)), key=lambda f: path_length(X, f))
 
 
 def mds_embedding(Z: np.ndarray) -> np.ndarray:
