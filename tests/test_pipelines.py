@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -22,6 +23,7 @@ def load_pipeline(name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(f"pipeline_{name}",
                                                   PIPELINES / name / "pipeline.py")
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 
@@ -107,3 +109,40 @@ def test_multi_person(assets_dir, tmp_path) -> None:
     cloud = o3d.t.io.read_point_cloud(str(frames[0]))
     np.testing.assert_array_equal(cloud.point["subject_id"].numpy().ravel(), np.repeat([0, 1], 28))
     assert swaps["found"] >= 0.8 and swaps["false_swaps"] <= 2
+
+
+def shelf_frame(people: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Joint candidates and part affinities of one frame as the Shelf detection files hold them:
+    the people's joints pooled per joint type, in a shuffled order, affinity 0.9 between two
+    candidates of one person, 0.1 across people."""
+    rng = np.random.default_rng(0)
+    shelf = load_pipeline("shelf")
+    owner, candidates = [], []
+    for j in range(shelf.JOINTS):
+        found = [(k, p[j]) for k, p in enumerate(people) if p[j, 2] > 0]
+        order = rng.permutation(len(found))
+        owner.append(np.array([found[i][0] for i in order], dtype=int))
+        candidates.append(np.array([found[i][1] for i in order]).reshape(-1, 3))
+    affinities = [np.where(owner[a][:, None] == owner[b][None, :], 0.9, 0.1)
+                  for a, b in shelf.PAFS]
+    return candidates, affinities
+
+
+def test_shelf_parsing_groups_each_person() -> None:
+    """The port of OpenPose's greedy parsing gives back each person whole from pooled
+    candidates (the parts of one person that the limbs' order builds apart are merged); a
+    fragment of fewer than 5 joints is dropped."""
+    shelf = load_pipeline("shelf")
+    rng = np.random.default_rng(1)
+    people = [np.column_stack([rng.uniform(0, 1000, (25, 2)), rng.uniform(0.3, 1, 25)])
+              for _ in range(3)]
+    people[1][[15, 16, 17, 18, 19, 20, 21, 22, 23, 24], 2] = 0  # no face nor feet
+    fragment = np.zeros((25, 3))
+    fragment[[4, 3], :] = [[5, 5, 0.8], [6, 6, 0.8]]  # a lone forearm
+    candidates, affinities = shelf_frame([*people, fragment])
+    parsed = shelf.parse_people(candidates, affinities)
+    assert len(parsed) == 3
+    key = sorted(range(3), key=lambda k: people[k][1, 0])
+    for got, want in zip(sorted(parsed, key=lambda p: p[1, 0]), (people[k] for k in key),
+                         strict=True):
+        np.testing.assert_array_equal(got, np.where(want[:, 2:] > 0, want, 0.0))
