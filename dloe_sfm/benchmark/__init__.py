@@ -10,6 +10,8 @@ Suites (``dloe-sfm benchmark SUITE``, :func:`main`):
 - ``runtime``: time per iteration and per step, and peak memory, against the number of images.
 - ``streams``: the same for many cameras (:data:`.suites.STREAMS_SIZES`: 11 000 images from 16
   streams, 10 000 from 64).
+- ``lone``: the same for lone photos, every one its own camera (:data:`.suites.LONE_SIZES`: 300
+  under the detector model, 300 to 4 000 clean; growth fitted on the clean ones).
 
 Every suite writes ``results.json`` (every run, settings, seeds, machine, git commit),
 ``table.md`` and ``<suite>.png`` to ``outputs/benchmark/<suite>/``.
@@ -49,6 +51,7 @@ from .report import (
 from .suites import (
     ABLATION_NOISE,
     KENDALL_MOTIONS,
+    LONE_SIZES,
     METHODS,
     MOTIONS,
     QUICK_MOTIONS,
@@ -62,7 +65,8 @@ from .suites import (
     simulation_settings,
 )
 
-__all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "METHODS", "STREAMS_SIZES", "SUITES", "InputError",
+__all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "LONE_SIZES", "METHODS", "STREAMS_SIZES", "SUITES",
+           "InputError",
            "fit_exponent", "machine_info", "main"]
 
 logger = logging.getLogger("dloe_sfm")
@@ -89,7 +93,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     motions : motion names (``walking_1`` or file stems / paths) instead of the suite's default.
     jobs : worker processes (each single-threaded); the runtime suite always runs one at a time.
     duration : clip length in seconds (default 2.5 s ~ the paper's 300 frames, quick 1 s).
-    sizes : runtime suite: target numbers of images (the streams suite's are fixed).
+    sizes : runtime suite: target numbers of images (the streams and lone suites' are fixed).
     streams, rate : runtime suite: video streams (default :data:`RUNTIME_STREAMS`) and their
         frame rate (default 30 Hz); the clip must last sizes / (rate streams) seconds.
     """
@@ -102,7 +106,7 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
     out.mkdir(parents=True, exist_ok=True)
     seeds = seeds if seeds is not None else (1 if quick else 3)
     duration = duration if duration is not None else (1.0 if quick else 2.5)
-    if suite in ("runtime", "streams"):
+    if suite in ("runtime", "streams", "lone"):
         motions = (motions or [RUNTIME_MOTION])[:1]
     elif motions is None:
         motions = QUICK_MOTIONS if quick else (KENDALL_MOTIONS if suite == "kendall" else MOTIONS)
@@ -138,6 +142,16 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
         summary = summarise_kendall(records)
         table = kendall_table(summary)
         png = plot_kendall(summary, out / "kendall.png")
+    elif suite == "lone":
+        grid = LONE_SIZES[quick]
+        specs = [{"motion": paths[0], "setting": n,
+                  "settings": simulation_settings(0, duration, num_streams=0, lone_photos=n,
+                                                  detector=detector)} for n, detector in grid]
+        records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
+        summary = summarise_runtime([r for r in records if r["detector"] is None])
+        table = runtime_table(records, summary)
+        doc.update(sizes=[list(size) for size in grid])
+        png = plot_runtime(records, summary, out / f"{suite}.png")
     else:
         if suite == "streams":
             grid = list(STREAMS_SIZES[quick])

@@ -203,7 +203,8 @@ def runtime_job(spec: dict) -> list[dict]:
     meter.rise_mb["export"] = _rss_mb() - rss
     t = result.timings
     steps = t["w_step"] + t["d_step"] + t["x_step"]
-    return [{"target": spec["setting"], "num_images": capture.num_images,
+    return [{"target": spec["setting"], "detector": spec["settings"]["detector"],
+             "num_images": capture.num_images,
              "num_streams": int(np.unique(capture.stream_ids).size),
              "num_points": capture.num_points, "nit": result.nit, "seconds": result.seconds,
              "per_iteration": steps / max(result.nit, 1),

@@ -186,6 +186,12 @@ def summarise_runtime(records: list[dict]) -> dict:
     return out
 
 
+def _size(record: dict) -> str:
+    """A runtime row's N, and its detector model when the detections were made by one."""
+    detector = record.get("detector")
+    return f"{record['num_images']}" + (f" ({detector} detector)" if detector else "")
+
+
 def runtime_table(records: list[dict], summary: dict) -> str:
     """Markdown: per size the steps per iteration, then every stage's seconds and peak-memory
     rise, then the growth exponents (if fitted)."""
@@ -193,7 +199,7 @@ def runtime_table(records: list[dict], summary: dict) -> str:
     lines = ["| N images | streams | iterations | total s | per iteration s | W-step s/it | "
              "D-step s/it | X-step s/it | peak RSS MB | error mm |", "|---|" + "---|" * 9]
     for r in records:
-        lines.append(f"| {r['num_images']} | {r['num_streams']} | {r['nit']} | "
+        lines.append(f"| {_size(r)} | {r['num_streams']} | {r['nit']} | "
                      f"{r['seconds']:.2f} | "
                      f"{r['per_iteration']:.3f} | {r['w_step_per_iteration']:.3f} | "
                      f"{r['d_step_per_iteration']:.4f} | {r['x_step_per_iteration']:.3f} | "
@@ -201,7 +207,7 @@ def runtime_table(records: list[dict], summary: dict) -> str:
     lines += ["", "Stages: seconds (exclusive) / rise of the peak RSS, MB", "",
               "| N images | " + " | ".join(STAGES) + " |", "|---|" + "---|" * len(STAGES)]
     for r in records:
-        lines.append(f"| {r['num_images']} | " + " | ".join(
+        lines.append(f"| {_size(r)} | " + " | ".join(
             f"{r['stage_seconds'][s]:.2f} s / {r['stage_rise_mb'][s]:.0f}" for s in STAGES)
             + " |")
     if summary["fits"]:
@@ -228,7 +234,8 @@ def plot_runtime(records: list[dict], summary: dict, path: Path) -> Path:
     ax.set_xlabel("number of images N")
     ax.set_ylabel("seconds")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    if summary["fits"]:
+        ax.legend(fontsize=8)
     return _save_png(fig, path)
 
 

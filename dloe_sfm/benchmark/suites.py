@@ -49,7 +49,12 @@ RUNTIME_STREAMS = 8
 STREAMS_SIZES = (((11_000, 16, 30.0), (10_000, 64, 6.5)), ((1_100, 16, 30.0), (1_000, 64, 6.5)))
 """(images, streams, Hz) of the ``streams`` suite's captures (issue 38: 11 000 images from 16
 cameras and 10^4 from 64, each within a minute), and of its ``--quick`` grid."""
-SUITES = [*SWEEPS, "kendall", "ablation", "runtime", "streams"]
+LONE_SIZES = (((300, None), (300, "openpose"), (1_000, None), (4_000, None)),
+              ((60, None), (60, "openpose")))
+"""(lone photos, detector model) of the ``lone`` suite's captures, every photo its own camera
+at a random instant (issue 38: 300 under the detector model within 15 s, 4 000 clean within a
+minute, growing at most as N^1.2), and of its ``--quick`` grid."""
+SUITES = [*SWEEPS, "kendall", "ablation", "runtime", "streams", "lone"]
 
 
 def ablation_variants(base: Options) -> dict[str, dict]:

@@ -5,7 +5,8 @@ Suites: ``noise``, ``rate``, ``missing``, ``density`` (3D error of every method 
 factor of the capture varies), ``kendall`` (|Kendall tau| of the sequencing orders),
 ``ablation`` (DLOE without the S, T or R term), ``runtime`` (time and memory against the number
 of images), ``streams`` (the same for many cameras: 11 000 images from 16 streams, 10 000 from
-64; ``--data`` with the CMU clips). Each writes ``results.json``, ``table.md`` and
+64; ``--data`` with the CMU clips), ``lone`` (the same for lone photos: 300 under the detector
+model, 300 to 4 000 clean). Each writes ``results.json``, ``table.md`` and
 ``<suite>.png`` to ``--out`` and prints the table.
 """
 
