@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 
 from dloe_sfm import benchmark
+from dloe_sfm.benchmark.jobs import run_jobs
+from dloe_sfm.core.parallel import map_in_processes
 
 
 @pytest.mark.slow
@@ -86,3 +88,15 @@ def test_lone_suite_quick(tmp_path) -> None:
     assert clean["error_mm"] < 0.5 < detected["error_mm"]
     assert doc["summary"]["fits"] == {}  # one clean size: nothing to fit
     assert "| 60 (openpose detector) | 60 |" in (tmp_path / "table.md").read_text()
+
+
+def _spawning_job(spec: dict) -> list[int]:
+    """A job whose own work runs in worker processes, as a solve's events do from 1000 images."""
+    return [sum(map_in_processes(abs, spec["values"], 2))]
+
+
+def test_fresh_jobs_may_start_processes() -> None:
+    """A runtime job's process may start workers of its own (the 4 000-photo solve of the lone
+    suite did, and a pool's daemon process may not)."""
+    assert run_jobs(_spawning_job, [{"values": [-1, -2]}, {"values": [3]}], 1, "t",
+                    fresh=True) == [3, 3]

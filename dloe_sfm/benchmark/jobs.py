@@ -13,6 +13,7 @@ import resource
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -219,11 +220,19 @@ def run_jobs(job: Callable[[dict], list[dict]], specs: list[dict], jobs: int, de
              fresh: bool = False) -> list[dict]:
     """Run ``job`` on every spec in ``jobs`` spawned single-threaded worker processes.
 
-    With ``fresh`` every spec gets a new process, so its peak memory is its own.
+    With ``fresh`` every spec gets a new process of its own, one at a time, so its peak memory is
+    its own; that process is not a pool's daemon, so a solve in it may start worker processes
+    of its own (``core.parallel``: events from ``MIN_PARALLEL_IMAGES`` images).
     """
     records: list[dict] = []
-    with single_threaded_children(), mp.get_context("spawn").Pool(
-            max(1, jobs), maxtasksperchild=1 if fresh else None) as pool:
-        for out in tqdm(pool.imap(job, specs), total=len(specs), desc=desc, unit="run"):
-            records += out
+    spawn = mp.get_context("spawn")
+    with single_threaded_children():
+        if fresh:
+            for spec in tqdm(specs, desc=desc, unit="run"):
+                with ProcessPoolExecutor(1, mp_context=spawn) as pool:
+                    records += pool.submit(job, spec).result()
+            return records
+        with spawn.Pool(max(1, jobs)) as pool:
+            for out in tqdm(pool.imap(job, specs), total=len(specs), desc=desc, unit="run"):
+                records += out
     return records
