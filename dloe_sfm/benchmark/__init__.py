@@ -66,8 +66,7 @@ from .suites import (
 )
 
 __all__ = ["DEFAULT_DATA", "DEFAULT_OUT", "LONE_SIZES", "METHODS", "STREAMS_SIZES", "SUITES",
-           "InputError",
-           "fit_exponent", "machine_info", "main"]
+           "InputError", "fit_exponent", "machine_info", "main"]
 
 logger = logging.getLogger("dloe_sfm")
 
