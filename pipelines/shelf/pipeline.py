@@ -20,8 +20,10 @@ frame and camera (``detection/<camera>.txt``) and 3D ground truth of every actor
    the 12 limb joints (ankles, knees, hips, wrists, elbows, shoulders), |Kendall tau| of the
    subject's images against their frames; and, as the reference, the synchronised 5-camera DLT
    of the same detections at every frame.
-5. ``--single``: the same capture with only the main actor's detections (the one seen in most
-   frames), every other detection removed, empty images kept.
+5. Runs (``--runs``): ``people``, every detection; ``single``, the same capture with only the
+   main actor's detections (the one seen in most frames), every other detection removed, empty
+   images kept; ``association``, the association step alone (``multitarget.associate``), scored
+   in seconds.
 
     python pipelines/shelf/pipeline.py --data PATH/TO/4d_association/data/shelf --out OUT
 """
@@ -31,7 +33,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,8 +51,6 @@ from dloe_sfm.io import atomic_path, check_output
 from dloe_sfm.keypoints import read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.stages.reconstruct import main as reconstruct_workspace
-
-logger = logging.getLogger("dloe_sfm")
 
 # OpenPose BODY_25's part-affinity pairs, in the order of the detection files.
 PAFS = np.array([
