@@ -141,49 +141,55 @@ def main(suite: str, *, out: Path | None = None, data: Path | None = None, quick
         summary = summarise_kendall(records)
         table = kendall_table(summary)
         png = plot_kendall(summary, out / "kendall.png")
-    elif suite == "lone":
-        grid = LONE_SIZES[quick]
-        specs = [{"motion": paths[0], "setting": n,
-                  "settings": simulation_settings(0, duration, num_streams=0, lone_photos=n,
-                                                  detector=detector)} for n, detector in grid]
-        records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
-        summary = summarise_runtime([r for r in records if r["detector"] is None])
-        table = runtime_table(records, summary)
-        doc.update(sizes=[list(size) for size in grid])
-        png = plot_runtime(records, summary, out / f"{suite}.png")
     else:
-        if suite == "streams":
-            grid = list(STREAMS_SIZES[quick])
-        else:
-            streams = streams or RUNTIME_STREAMS
-            rate = rate or 30.0
-            if streams < 2 or not 0 < rate <= 1000:
-                raise InputError(f"--streams must be 2 or more and --rate in (0, 1000], got "
-                                 f"{streams} and {rate:g}")
-            grid = [(n, streams, rate) for n in sizes or RUNTIME_SIZES[quick]]
-        seq = load_mocap(paths[0])
-        clip = seq.positions.shape[0] / seq.fps
-        n, streams, rate = max(grid, key=lambda size: size[0] / (size[1] * size[2]))
-        if n / (streams * rate) > clip:
-            raise InputError(f"{Path(paths[0]).name} is {clip:.1f} s long: {n} images "
-                             f"need {n / (streams * rate):.1f} s at {streams} streams of "
-                             f"{rate:g} Hz " + ("(--data: the CMU clips)" if suite == "streams"
-                                                else f"(--streams {math.ceil(n / (rate * clip))} "
-                                                "or more, or a higher --rate)"))
-        specs = [{"motion": paths[0], "setting": int(n),
-                  "settings": simulation_settings(0, n / (streams * rate), num_streams=streams,
-                                                  rate=rate)} for n, streams, rate in grid]
+        specs, sizes_doc = _runtime_specs(suite, paths[0], quick, duration, sizes, streams, rate)
         records = run_jobs(runtime_job, specs, 1, suite, fresh=True)
-        # the streams suite's sizes differ in their cameras: no growth against N
-        summary = summarise_runtime(records) if suite == "runtime" else {"fits": {}}
+        # the streams suite's sizes differ in their cameras: no growth against N; the lone
+        # suite's growth is its clean sizes'
+        summary = {"fits": {}} if suite == "streams" else summarise_runtime(
+            [r for r in records if r["detector"] is None])
         table = runtime_table(records, summary)
-        if suite == "runtime":
-            doc.update(sizes=[size[0] for size in grid], num_streams=streams, rate=rate)
-        else:
-            doc.update(sizes=[list(size) for size in grid])
+        doc.update(sizes_doc)
         png = plot_runtime(records, summary, out / f"{suite}.png")
     doc.update(seconds=time.perf_counter() - t0, summary=summary, runs=records, table=table,
                plot=str(png))
     write_results(out, doc)
     logger.info("%s: %d runs in %.0f s -> %s", suite, len(records), doc["seconds"], out)
     return doc
+
+
+def _runtime_specs(suite: str, motion: str, quick: bool, duration: float,
+                   sizes: list[int] | None, streams: int | None, rate: float | None
+                   ) -> tuple[list[dict], dict]:
+    """The runs of the ``runtime``, ``streams`` or ``lone`` suite (one solve each) and what
+    ``results.json`` records of their sizes."""
+    if suite == "lone":
+        grid = LONE_SIZES[quick]
+        return [{"motion": motion, "setting": n,
+                 "settings": simulation_settings(0, duration, num_streams=0, lone_photos=n,
+                                                 detector=detector)} for n, detector in grid], \
+            {"sizes": [list(size) for size in grid]}
+    if suite == "streams":
+        grid = list(STREAMS_SIZES[quick])
+    else:
+        streams = streams or RUNTIME_STREAMS
+        rate = rate or 30.0
+        if streams < 2 or not 0 < rate <= 1000:
+            raise InputError(f"--streams must be 2 or more and --rate in (0, 1000], got "
+                             f"{streams} and {rate:g}")
+        grid = [(n, streams, rate) for n in sizes or RUNTIME_SIZES[quick]]
+    seq = load_mocap(motion)
+    clip = seq.positions.shape[0] / seq.fps
+    n, most, hz = max(grid, key=lambda size: size[0] / (size[1] * size[2]))
+    if n / (most * hz) > clip:
+        raise InputError(f"{Path(motion).name} is {clip:.1f} s long: {n} images "
+                         f"need {n / (most * hz):.1f} s at {most} streams of "
+                         f"{hz:g} Hz " + ("(--data: the CMU clips)" if suite == "streams"
+                                          else f"(--streams {math.ceil(n / (hz * clip))} "
+                                          "or more, or a higher --rate)"))
+    specs = [{"motion": motion, "setting": int(n),
+              "settings": simulation_settings(0, n / (k * r), num_streams=k, rate=r)}
+             for n, k, r in grid]
+    if suite == "runtime":
+        return specs, {"sizes": [size[0] for size in grid], "num_streams": streams, "rate": rate}
+    return specs, {"sizes": [list(size) for size in grid]}
