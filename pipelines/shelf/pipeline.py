@@ -41,6 +41,7 @@ import numpy as np
 
 from dloe_sfm.colmap import CameraSpec, ImageSpec, load_workspace, write_model
 from dloe_sfm.core import multitarget
+from dloe_sfm.core.capture import nearest_rotation
 from dloe_sfm.core.events import symmetrised
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.pipeline import shape_space_graph
@@ -85,9 +86,9 @@ def read_cameras(path: Path) -> dict[str, Camera]:
     cameras = {}
     for name, cam in document.items():
         RT = np.array(cam["RT"], dtype=float).reshape(3, 4)
-        u, _, vt = np.linalg.svd(RT[:, :3])  # stored to 7-8 digits: the nearest rotation
-        cameras[name] = Camera(np.array(cam["K"], dtype=float).reshape(3, 3), u @ vt,
-                               RT[:, 3], *map(int, cam["imgSize"]))
+        # stored to 7-8 digits: the nearest rotation
+        cameras[name] = Camera(np.array(cam["K"], dtype=float).reshape(3, 3),
+                               nearest_rotation(RT[:, :3]), RT[:, 3], *map(int, cam["imgSize"]))
     return cameras
 
 
@@ -197,12 +198,12 @@ def match_actors(skeletons: list[np.ndarray], actors: dict[int, np.ndarray], cam
 def triangulate(cameras: list[Camera], skeletons: list[np.ndarray]) -> np.ndarray:
     """Score-weighted DLT of each limb joint seen by >= 2 cameras; (12, 3), NaN = unseen."""
     X = np.full((len(BODY25_LIMBS), 3), np.nan)
+    matrices = [cam.K @ np.hstack([cam.R, cam.t[:, None]]) for cam in cameras]
     for k, joint in enumerate(BODY25_LIMBS):
         rows = []
-        for cam, skeleton in zip(cameras, skeletons, strict=True):
+        for P, skeleton in zip(matrices, skeletons, strict=True):
             x, y, w = skeleton[joint]
             if w > 0:
-                P = cam.K @ np.hstack([cam.R, cam.t[:, None]])
                 rows += [w * (x * P[2] - P[0]), w * (y * P[2] - P[1])]
         if len(rows) >= 4:
             v = np.linalg.svd(np.array(rows))[2][-1]
@@ -252,17 +253,18 @@ def unannotated_seen(shelf: Shelf, joint: int = 1, max_m: float = 0.15) -> tuple
         d = cam.R.T @ np.linalg.solve(cam.K, [x[0], x[1], 1.0])
         return -cam.R.T @ cam.t, d / np.linalg.norm(d)
 
+    rays = [[[ray(c, s[joint]) if s[joint, 2] > 0 else None for s in skeletons]
+             for skeletons in per_frame] for c, per_frame in enumerate(shelf.skeletons)]
     total = seen = 0
-    for c, per_frame in enumerate(shelf.skeletons):
-        for f, skeletons in enumerate(per_frame):
-            for skeleton, actor in zip(skeletons, shelf.actors[c][f], strict=True):
-                if actor != -1 or skeleton[joint, 2] <= 0:
+    for c, per_frame in enumerate(rays):
+        for f, frame_rays in enumerate(per_frame):
+            for r, actor in zip(frame_rays, shelf.actors[c][f], strict=True):
+                if actor != -1 or r is None:
                     continue
                 total += 1
-                r = ray(c, skeleton[joint])
-                views = sum(any(ray_distance(r, ray(o, s[joint])) < max_m
-                                for s in shelf.skeletons[o][f] if s[joint, 2] > 0)
-                            for o in range(len(shelf.cameras)) if o != c)
+                views = sum(any(other is not None and ray_distance(r, other) < max_m
+                                for other in rays[o][f])
+                            for o in range(len(rays)) if o != c)
                 seen += views >= 2
     return total, seen
 
