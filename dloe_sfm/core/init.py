@@ -5,8 +5,19 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .dtw import align_many, in_blocks
+
+LONE_REFERENCES = 128
+"""Images spread over the capture whose shapes are triangulated first, every lone photo then
+scored against them alone (:func:`_lone_pairs`)."""
+LONE_HYPOTHESES = 2
+"""A lone photo's best references whose pair shapes each look for its nearest images."""
+LONE_NEIGHBOURS = 32
+"""Nearest images in shape a lone photo is scored against, per shape looked for."""
+LONE_ROUNDS = 2
+"""Rounds of that search, each from the shapes the last one triangulated."""
 
 PARTNER_STREAMS = 7
 """Other streams whose images an image of a stream is scored against for its partner
@@ -48,11 +59,18 @@ class _Pairs:
         self.C = np.ascontiguousarray(C.T)[:, :, None]  # (3, N, 1)
         self.streams, self.cos_max = streams, cos_max
 
-    def depths(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def depths(
+        self, a: np.ndarray, b: np.ndarray, known: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Depths on a's rays, validity (.., P) and mean gaps (..) of images a against b
-        (index arrays, broadcast)."""
+        (index arrays, broadcast). With ``known`` (N, P) depths (NaN = unknown), each point's
+        gap adds the distance of its closest point on b's ray from b's known point: views that
+        are not simultaneous can meet closely where the motion runs along their epipolar
+        lines, but then not at b's point."""
         ra, rb = self.r[:, a], self.r[:, b]
         s, t, gap = closest_approach(self.C[:, a], ra, self.C[:, b], rb)
+        if known is not None:
+            gap = gap + np.nan_to_num(np.abs(t - known[b]))
         cosang = np.abs(_dot(ra, rb))
         ok = (
             self.vis[a]
@@ -91,8 +109,8 @@ def pseudo_triangulate(
     lines, so with ``frames`` the partners in another stream of two or more images (one of
     :func:`partner_streams`: the most convergent views) are only the
     images within one of an order-preserving alignment of the two streams (DTW on the gaps,
-    ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against every
-    image. Each observed point takes the depth of the closest point on its ray to the partner's
+    ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against the
+    images a sparse search in shape finds (:func:`_lone_pairs`). Each observed point takes the depth of the closest point on its ray to the partner's
     ray; a point the partner cannot serve takes the next-best partner that can.
 
     Parameters
@@ -101,7 +119,7 @@ def pseudo_triangulate(
     C : (N, 3) float camera centres
     streams : (N,) int stream ids (pairs within one stream are never used)
     frames : (N,) int frame order inside streams, optional
-    chunk : images scored against all others at a time (lone photos, or without ``frames``)
+    chunk : lone photos scored at a time
 
     Returns
     -------
@@ -113,29 +131,51 @@ def pseudo_triangulate(
     depths = np.full((n, p), np.nan)
     partner = np.full(n, -1)
     for rows, cols in _candidates(pairs, streams, frames, chunk):
-        s, ok, score = pairs.depths(rows, cols)
-        # group by image, best score first (ties: the lower image index, as a stable sort)
-        order = np.lexsort((cols, score, rows))
-        rows, cols, s, ok, score = rows[order], cols[order], s[order], ok[order], score[order]
-        first = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
-        img = rows[first]
-        partner[img] = np.where(np.isfinite(score[first]), cols[first], -1)
-        # per point: the best-ranked partner whose ray pair is valid for that point
-        at = np.where(ok, np.arange(rows.size)[:, None], rows.size)
-        chosen = np.minimum.reduceat(at, first, axis=0)  # (images, P)
-        found = chosen < rows.size
-        pick = np.minimum(chosen, rows.size - 1)
-        usable = found & np.isfinite(score[pick])
-        depths[img] = np.where(usable, np.take_along_axis(s, pick, axis=0), np.nan)
+        img, best, d = _best_partners(pairs, rows, cols)
+        partner[img], depths[img] = best, d
     return depths, partner
 
+
+def _ranked(
+    pairs: _Pairs, rows: np.ndarray, cols: np.ndarray, known: np.ndarray | None = None
+) -> tuple[np.ndarray, ...]:
+    """The pairs ``rows`` x ``cols`` grouped by image, best score (``_Pairs.depths``) first
+    (ties: the lower image index): (rows, cols, depths, validity, scores, the start of each
+    image's group)."""
+    s, ok, score = pairs.depths(rows, cols, known)
+    order = np.lexsort((cols, score, rows))
+    rows = rows[order]
+    first = np.flatnonzero(np.r_[True, rows[1:] != rows[:-1]])
+    return rows, cols[order], s[order], ok[order], score[order], first
+
+
+def _best_partners(
+    pairs: _Pairs, rows: np.ndarray, cols: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(images, partner (-1 = none), depths (images, P)) of the pairs ``rows`` x ``cols``, each
+    image's pairs all among them: the partner of the smallest score, and each point's depth
+    from the best-ranked partner whose ray pair is valid for that point."""
+    return _best_of(_ranked(pairs, rows, cols))
+
+
+def _best_of(ranked: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_best_partners` of pairs already :func:`_ranked`."""
+    rows, cols, s, ok, score, first = ranked
+    img = rows[first]
+    partner = np.where(np.isfinite(score[first]), cols[first], -1)
+    at = np.where(ok, np.arange(rows.size)[:, None], rows.size)
+    chosen = np.minimum.reduceat(at, first, axis=0)  # (images, P)
+    found = chosen < rows.size
+    pick = np.minimum(chosen, rows.size - 1)
+    usable = found & np.isfinite(score[pick])
+    return img, partner, np.where(usable, np.take_along_axis(s, pick, axis=0), np.nan)
 
 def _candidates(
     pairs: _Pairs, streams: np.ndarray, frames: np.ndarray | None, chunk: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(rows, cols) of the image pairs to score, every image's pairs in one batch: the images
     within one of the alignment in each of the stream's :func:`partner_streams` (with
-    ``frames``), and every image of another stream for the rest (lone photos, or all images
+    ``frames``), and those :func:`_lone_pairs` finds for the rest (lone photos, or all images
     without ``frames``)."""
     from .sequencing import stream_members
 
@@ -147,11 +187,7 @@ def _candidates(
     for m in members:
         aligned[m] = True
     rest = np.flatnonzero(~aligned)
-    everyone = np.arange(n)
-    for lo in range(0, rest.size, chunk):
-        rows = rest[lo:lo + chunk]
-        r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
-        yield rows[r], everyone[c]
+    yield from _lone_pairs(pairs, rest, chunk)
     paths = iter(align_many([
         (in_blocks(lambda i, j, a=a, b=b: pairs.score(a[i], b[j]), 3 * p), a.size, b.size)
         for a, near in zip(members, partners, strict=True) for b in (members[j] for j in near)
@@ -169,6 +205,70 @@ def _candidates(
         cols.append(rest[c])
         yield np.concatenate(rows), np.concatenate(cols)
 
+
+def _lone_pairs(
+    pairs: _Pairs, rest: np.ndarray, chunk: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(rows, cols) of the pairs to score of the images ``rest`` (lone photos), every image's
+    pairs in one batch of ``chunk`` images, found without scoring all N^2 pairs:
+
+    1. :data:`LONE_REFERENCES` images spread over the capture are paired with every image;
+       their shapes are then known.
+    2. Every image is scored against the references with the distance to their known points
+       added (``_Pairs.depths``): a view at another instant may meet a reference's rays closely
+       where the motion runs along their epipolar lines, but not at its points. Its
+       :data:`LONE_HYPOTHESES` best give shapes of its rays.
+    3. Its pairs are the :data:`LONE_NEIGHBOURS` images nearest each of those shapes among all
+       images' shapes (a simultaneous view sees the same shape) and its best so far; scored,
+       they give better shapes and the search is made again from them, :data:`LONE_ROUNDS` in
+       all.
+
+    Linear in N for a bounded number of references; on the simulator's lone photos its
+    partners triangulate better than the best of all pairs (docs/method.md, "Many lone
+    photos")."""
+    n, p = pairs.vis.shape
+    streams = pairs.streams
+    if not rest.size:
+        return
+    refs = np.unique(np.linspace(0, n - 1, LONE_REFERENCES).round().astype(np.int64))
+    known = np.full((n, p), np.nan)
+    for lo in range(0, refs.size, chunk):
+        rows = refs[lo:lo + chunk]
+        r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
+        img, _, known[img] = _best_partners(pairs, rows[r], c)
+    depth = np.full((n, p), np.nan)
+    best = np.full(n, -1)
+    guesses = np.full((n, LONE_HYPOTHESES, p), np.nan)
+    for lo in range(0, n, chunk):
+        rows = np.arange(lo, min(lo + chunk, n))
+        r, c = np.nonzero(streams[rows][:, None] != streams[None, refs])
+        ranked = _ranked(pairs, rows[r], refs[c], known)
+        img, best[img], depth[img] = _best_of(ranked)
+        rows, _, s, ok, _, first = ranked
+        rank = np.arange(rows.size) - np.repeat(first, np.diff(np.r_[first, rows.size]))
+        top = rank < LONE_HYPOTHESES
+        guesses[rows[top], rank[top]] = np.where(ok[top], s[top], np.nan)
+    for last in [False] * (LONE_ROUNDS - 1) + [True]:
+        X = np.moveaxis(pairs.C + depth[None] * pairs.r, 0, 2)  # (N, P, 3)
+        mean = _masked_mean(X, np.isfinite(depth), axis=0)
+        tree = cKDTree(np.where(np.isfinite(X), X, np.nan_to_num(mean)).reshape(n, -1))
+        d = np.where(np.isfinite(guesses[rest]), guesses[rest], depth[rest, None])
+        Q = pairs.C[:, rest, None] + d[None] * pairs.r[:, rest, None]  # (3, rest, H, P)
+        Q = np.moveaxis(Q, 0, -1)
+        Q = np.where(np.isfinite(Q), Q, np.nan_to_num(mean)).reshape(rest.size * d.shape[1], -1)
+        _, near = tree.query(Q, k=min(LONE_NEIGHBOURS + 1, n))
+        near = np.c_[near.reshape(rest.size, -1), best[rest]]
+        for lo in range(0, rest.size, chunk):
+            rows = rest[lo:lo + chunk]
+            cand = np.sort(near[lo:lo + chunk], axis=1)
+            keep = (cand >= 0) & (cand < n) & (streams[cand % n] != streams[rows, None])
+            keep[:, 1:] &= cand[:, 1:] != cand[:, :-1]
+            r, c = np.nonzero(keep)
+            if last:
+                yield rows[r], cand[r, c]
+            else:
+                img, best[img], depth[img] = _best_partners(pairs, rows[r], cand[r, c])
+        guesses = depth[:, None]
 
 def partner_streams(rays: np.ndarray, members: list[np.ndarray]) -> list[np.ndarray]:
     """The streams (indices into ``members``, ascending) whose images each stream's are
