@@ -9,6 +9,11 @@ from scipy.spatial import cKDTree
 
 from .dtw import align_many, in_blocks
 
+LONE_EXACT = 1024
+"""Lone photos paired with every image of another stream up to this many of them; beyond, by
+the sparse search of :func:`_lone_pairs` (docs/method.md, "Many lone photos": it triangulates
+better under detector noise, but changes the solves of some smaller captures for the worse, so
+it is kept to the sizes where all pairs cost too much)."""
 LONE_REFERENCES = 128
 """Images spread over the capture whose shapes are triangulated first, every lone photo then
 scored against them alone (:func:`_lone_pairs`)."""
@@ -109,9 +114,10 @@ def pseudo_triangulate(
     lines, so with ``frames`` the partners in another stream of two or more images (one of
     :func:`partner_streams`: the most convergent views) are only the
     images within one of an order-preserving alignment of the two streams (DTW on the gaps,
-    ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against the
-    images a sparse search in shape finds (:func:`_lone_pairs`). Each observed point takes the depth of the closest point on its ray to the partner's
-    ray; a point the partner cannot serve takes the next-best partner that can.
+    ``core.dtw.align_many``: linear in the streams' lengths); lone photos are scored against every
+    image, or beyond :data:`LONE_EXACT` of them against those a sparse search in shape finds
+    (:func:`_lone_pairs`). Each observed point takes the depth of the closest point on its ray to
+    the partner's ray; a point the partner cannot serve takes the next-best partner that can.
 
     Parameters
     ----------
@@ -210,7 +216,8 @@ def _lone_pairs(
     pairs: _Pairs, rest: np.ndarray, chunk: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(rows, cols) of the pairs to score of the images ``rest`` (lone photos), every image's
-    pairs in one batch of ``chunk`` images, found without scoring all N^2 pairs:
+    pairs in one batch of ``chunk`` images: every image of another stream, up to
+    :data:`LONE_EXACT` of them; beyond, those found without scoring all N^2 pairs:
 
     1. :data:`LONE_REFERENCES` images spread over the capture are paired with every image;
        their shapes are then known.
@@ -224,11 +231,14 @@ def _lone_pairs(
        all.
 
     Linear in N for a bounded number of references; on the simulator's lone photos its
-    partners triangulate better than the best of all pairs (docs/method.md, "Many lone
-    photos")."""
+    partners triangulate better than the best of all pairs."""
     n, p = pairs.vis.shape
     streams = pairs.streams
-    if not rest.size:
+    if rest.size <= LONE_EXACT:
+        for lo in range(0, rest.size, chunk):
+            rows = rest[lo:lo + chunk]
+            r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
+            yield rows[r], c
         return
     refs = np.unique(np.linspace(0, n - 1, LONE_REFERENCES).round().astype(np.int64))
     known = np.full((n, p), np.nan)
