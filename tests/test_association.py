@@ -12,7 +12,12 @@ from dloe_sfm.calibration import import_calibration
 from dloe_sfm.colmap import load_workspace
 from dloe_sfm.core.capture import Capture, pixel_rays, project
 from dloe_sfm.core.decisions import subject_count
-from dloe_sfm.core.multitarget import aggregate, associate, detection_confidence
+from dloe_sfm.core.multitarget import (
+    aggregate,
+    associate,
+    detection_confidence,
+    stream_links,
+)
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.pipeline import initial_events
 from dloe_sfm.core.problem import initialise
@@ -44,6 +49,18 @@ def purity(assignment: np.ndarray, truth: np.ndarray) -> float:
     """Share of the assigned detections on their subject's majority person."""
     right = sum(np.bincount(truth[assignment == k]).max() for k in range(assignment.max() + 1))
     return right / (assignment >= 0).sum()
+
+
+def test_stream_links_follow_each_person(assets_dir) -> None:
+    """Detections in a random order per image: the links of consecutive stream images join one
+    person's detections, nearly all of them."""
+    seqs = [load_mocap(assets_dir / "mocap" / f"{m}.npz") for m in ("walking_1", "jumping_1")]
+    cap, sim = simulate_people(seqs, QUICK)
+    pairs = stream_links(cap)
+    person = sim.subjects.ravel()
+    assert (person[pairs[:, 0]] == person[pairs[:, 1]]).all()
+    consecutive = cap.num_images - np.unique(cap.stream).size
+    assert len(pairs) >= 0.9 * 2 * consecutive
 
 
 def test_a_person_seen_by_two_of_four_streams_is_no_subject(two_people, log_lines) -> None:

@@ -11,13 +11,8 @@ from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.clocked import robust_on_clocks
 from dloe_sfm.core.clocks import time_chain
 from dloe_sfm.core.decisions import MOST_OF_AN_IMAGE, spare_mispredicted
-from dloe_sfm.core.events import (
-    cluster_coordinates,
-    join_touching,
-    segment_events,
-    stream_runs,
-)
-from dloe_sfm.core.multitarget import constrained_clusters
+from dloe_sfm.core.events import join_touching, segment_events, stream_runs
+from dloe_sfm.core.multitarget import constrained_merging
 from dloe_sfm.core.options import Options, RobustLoss
 from dloe_sfm.core.problem import build_problem, initialise, normalise
 from dloe_sfm.core.robust import (
@@ -99,26 +94,21 @@ def test_stray_links_do_not_join_two_events(rng):
     assert np.unique(whole).size == 1
 
 
-def test_cluster_coordinates_separate_components():
-    blocks = [np.ones((k, k)) - np.eye(k) for k in (5, 7, 9)]
-    A = sp.block_diag(blocks).tocsr()
-    F = cluster_coordinates(A, 3)
-    groups = np.repeat([0, 1, 2], [5, 7, 9])
-    for g in range(3):
-        assert np.allclose(F[groups == g], F[groups == g][0], atol=1e-8)
-    centres = np.array([F[groups == g][0] for g in range(3)])
-    assert np.allclose(np.abs(centres @ centres.T), np.eye(3), atol=1e-8)
-
-
-def test_constrained_clusters_give_each_group_distinct_clusters(rng):
-    centres = np.array([[0.0, 0.0], [1.0, 0.0]])
-    truth = np.tile([0, 1], 50)
-    F = centres[truth] + 0.3 * rng.standard_normal((100, 2))
-    group = np.repeat(np.arange(50), 2)
-    labels = constrained_clusters(F, group, 2)
-    assert all(len(set(labels[group == g])) == 2 for g in range(50))
-    agree = (labels == truth).mean()
-    assert max(agree, 1 - agree) >= 0.95
+def test_constrained_merging_keeps_long_chains_whole():
+    """Two people in 60 images, each a chain of links from image to image; one chain nearly
+    breaks halfway, and a few links join the people. Merging by link weight, never within an
+    image, keeps both chains whole (a cut along time would be cheaper than the wrong links)."""
+    n = 60
+    node = np.arange(2 * n).reshape(n, 2)  # node[i, p]: person p in image i
+    rows = [node[:-1, 0], node[:-1, 1], node[[5, 20, 40], 0]]
+    cols = [node[1:, 0], node[1:, 1], node[[6, 21, 41], 1]]
+    weights = [np.where(np.arange(n - 1) == 30, 0.05, 1.0), np.ones(n - 1), np.full(3, 0.3)]
+    A = sp.coo_matrix((np.concatenate(weights), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(2 * n, 2 * n))
+    group = np.repeat(np.arange(n), 2)
+    labels = constrained_merging((A + A.T).tocsr(), np.arange(2 * n), group, 2)
+    assert np.unique(labels[node[:, 0]]).size == 1 and np.unique(labels[node[:, 1]]).size == 1
+    assert labels[0] != labels[1]
 
 
 def test_loss_weights():

@@ -84,14 +84,6 @@ def spectral_coordinates(A: sp.spmatrix, dim: int = 2) -> np.ndarray:
     return out
 
 
-def cluster_coordinates(A: sp.spmatrix, k: int) -> np.ndarray:
-    """(N, k) rows of the k leading eigenvectors of the normalised adjacency, each scaled to
-    unit length (Ng, Jordan & Weiss): k groups of nodes with few links between them map near k
-    orthogonal directions, however their eigenspace came out (components share eigenvalue 1)."""
-    vecs, _ = _leading_eigenvectors(A, min(k, A.shape[0] - 1))
-    return vecs / np.maximum(np.linalg.norm(vecs, axis=1, keepdims=True), 1e-300)
-
-
 def stream_runs(streams: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """(N,) run labels: every stream cut into runs of consecutive frames where the video stopped.
 

@@ -4,26 +4,30 @@
 2. DLOE's graph over all proxies, fitted in shape space to their initial shapes: a subject's
    proxies combine each other's shapes, not another subject's, so each subject becomes an event.
 3. Association through the common source image: the proxies of one image are different
-   subjects, so they are split by a spectral clustering of the proxy graph whose assignment
-   step matches each image's proxies to distinct subjects (Hungarian, per image).
+   subjects. A stream's consecutive images link the detections that barely moved between them
+   (one person, tracked in the image); those runs merge, by the proxy graph's total link weight
+   between them and never two holding one image, until one cluster per subject is left.
 4. Aggregation: each image's subjects form one shape of S x P points.
 5. DLOE over the original images with those shapes (streams, events, robust loss as usual).
 """
 
 from __future__ import annotations
 
+import heapq
 import logging
 import time
 import warnings
 from dataclasses import replace
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import connected_components
 
 from .alternation import Progress
 from .capture import Capture, project
 from .decisions import subject_count, subject_support
-from .events import cluster_coordinates
+from .events import stream_runs, symmetrised
 from .options import Options
 from .pipeline import shape_space_graph, solve_single
 from .problem import initialise
@@ -37,8 +41,9 @@ def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
     """Step 1: (proxies, source image (N',), detection slot (N',)) of an (N, M, P, 2) capture.
 
     Proxies are lone photos: a detector's slot order says nothing about identity, so no stream
-    order links them (two proxies of one static camera are never neighbours anyway: their
-    rays are parallel).
+    order links them in the graph (two proxies of one static camera are never neighbours
+    anyway: their rays are parallel); the association tracks them along streams instead
+    (:func:`stream_links`).
     """
     vis = capture.visible
     source, slot = np.nonzero(vis.any(axis=2))
@@ -53,38 +58,119 @@ def proxy_capture(capture: Capture) -> tuple[Capture, np.ndarray, np.ndarray]:
     return proxies, source, slot
 
 
-def constrained_clusters(
-    F: np.ndarray, group: np.ndarray, k: int, *, max_iterations: int = 100
-) -> np.ndarray:
-    """k-means of the rows of F (N', d) where rows of one ``group`` take distinct clusters.
+STEP = 0.1
+"""Largest displacement, in detection sizes, of a person between consecutive images of a
+stream (median over the points both detections hold) for the two detections to be linked."""
 
-    Seeds: the rows of the first group with k members (else farthest-point seeding); the
-    assignment step solves one small assignment problem per group; the rows of a group of
-    more than k that lose it are -1.
+DISTINCT = 2.0
+"""How many times nearer a linked pair must be than either detection is to any other detection
+of the other image: where two people are about as near, the link is left to the graph."""
+
+
+def detection_sizes(capture: Capture) -> np.ndarray:
+    """(N, M) the longer side of each detection's bounding box (0: no point)."""
+    vis = capture.visible[..., None]
+    lo = np.where(vis, capture.x, np.inf).min(axis=2)
+    hi = np.where(vis, capture.x, -np.inf).max(axis=2)
+    return np.where(vis.any(axis=2), hi - lo, 0.0).max(axis=-1)
+
+
+def step_costs(capture: Capture, sizes: np.ndarray, a: int, b: int) -> np.ndarray:
+    """(M, M) displacement between the detections of images ``a`` and ``b``: the median
+    distance over the points both hold (at least 3, else inf) over the larger one's size."""
+    vis = capture.visible
+    cost = np.full((capture.x.shape[1],) * 2, np.inf)
+    for m in np.flatnonzero(vis[a].any(axis=1)):
+        for n in np.flatnonzero(vis[b].any(axis=1)):
+            both = vis[a, m] & vis[b, n]
+            if both.sum() >= 3:
+                d = np.linalg.norm(capture.x[a, m, both] - capture.x[b, n, both], axis=1)
+                cost[m, n] = np.median(d) / max(sizes[a, m], sizes[b, n], 1e-12)
+    return cost
+
+
+def stream_links(capture: Capture) -> np.ndarray:
+    """(L, 2) pairs of detections (flat indices ``image * M + slot``) of one person in
+    consecutive images of a stream run (``events.stream_runs``): within a run a person moves
+    little from image to image, which tells people apart over time better than their shapes.
+
+    Each image pair's detections are matched one to one (Hungarian on ``step_costs``); a match
+    is kept when it moved under :data:`STEP` sizes and :data:`DISTINCT` times less than to any
+    other detection of either image. Lone photos have none.
     """
-    groups = [np.flatnonzero(group == g) for g in np.unique(group)]
-    full = next((g for g in groups if g.size == k), None)
-    if full is not None:
-        centres = F[full].copy()
-    else:
-        centres = [F[0]]
-        for _ in range(k - 1):
-            d = np.min([((F - c) ** 2).sum(axis=1) for c in centres], axis=0)
-            centres.append(F[int(np.argmax(d))])
-        centres = np.array(centres)
-    labels = np.full(F.shape[0], -1)
-    for _ in range(max_iterations):
-        cost = ((F[:, None, :] - centres[None]) ** 2).sum(axis=2)
-        new = np.full_like(labels, -1)
-        for g in groups:
-            rows, cols = linear_sum_assignment(cost[g])
-            new[g[rows]] = cols
-        if (new == labels).all():
-            break
-        labels = new
-        for c in range(k):
-            if (labels == c).any():
-                centres[c] = F[labels == c].mean(axis=0)
+    m = capture.x.shape[1]
+    sizes = detection_sizes(capture)
+    runs = stream_runs(capture.stream, capture.frame)
+    order = np.lexsort((capture.frame, runs))
+    pairs = []
+    for a, b in zip(order[:-1], order[1:], strict=True):
+        if runs[a] != runs[b]:
+            continue
+        cost = step_costs(capture, sizes, a, b)
+        rows, cols = linear_sum_assignment(np.minimum(cost, 1e300))
+        for i, j in zip(rows, cols, strict=True):
+            others = min(np.delete(cost[i], j).min(initial=np.inf),
+                         np.delete(cost[:, j], i).min(initial=np.inf))
+            if cost[i, j] < STEP and DISTINCT * cost[i, j] < others:
+                pairs.append((a * m + i, b * m + j))
+    return np.array(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def constrained_merging(
+    G: sp.csr_matrix, start: np.ndarray, group: np.ndarray, k: int
+) -> np.ndarray:
+    """(N',) clusters 0..k-1 (or -1) of the nodes of affinity ``G`` (N', N'), by greedy merging.
+
+    From the clusters ``start`` (N'), the two of the largest total link weight between them
+    that share no ``group`` merge, until k are left or no two linked ones may merge: each merge
+    takes the most weight it can out of the cut. A subject's proxies form a long chain along
+    time, linked image to image; a spectral clustering cuts such chains where they thin out and
+    pairs the pieces across people, while merging joins a chain's pieces wherever a link is
+    left and the groups forbid the pieces of two people that are seen together. The k largest
+    clusters are the result; the nodes of the others take, per group, the clusters their group
+    left free (a Hungarian match on link weight; those beyond k in a group: -1).
+    """
+    _, start = np.unique(start, return_inverse=True)
+    count = start.max() + 1
+    P = sp.csr_matrix((np.ones(start.size), (start, np.arange(start.size))))
+    S = sp.triu(P @ G @ P.T, k=1).tocoo()
+    links = [{} for _ in range(count)]
+    for a, b, w in zip(S.row, S.col, S.data, strict=True):
+        links[a][b] = links[b][a] = w
+    order = np.argsort(start, kind="stable")
+    members = [list(m) for m in np.split(order, np.cumsum(np.bincount(start))[:-1])]
+    groups = [set(group[m].tolist()) for m in members]
+    heap = [(-w, a, b) for a, b, w in zip(S.row, S.col, S.data, strict=True)]
+    heapq.heapify(heap)
+    alive = count
+    while heap and alive > k:
+        w, a, b = heapq.heappop(heap)
+        if links[a].get(b) != -w or groups[a] & groups[b]:
+            continue  # stale (merged since), or never: clusters only grow
+        if len(members[a]) < len(members[b]):
+            a, b = b, a
+        for c, v in links[b].items():
+            del links[c][b]
+            if c != a:
+                links[a][c] = links[c][a] = links[a].get(c, 0.0) + v
+                heapq.heappush(heap, (-links[a][c], min(a, c), max(a, c)))
+        links[b] = {}
+        members[a] += members[b]
+        groups[a] |= groups[b]
+        members[b], groups[b] = [], set()
+        alive -= 1
+    sizes = np.array([len(m) for m in members])
+    labels = np.full(start.size, -1)
+    for c, big in enumerate(np.argsort(-sizes, kind="stable")[:k]):
+        labels[members[big]] = c
+    kept = np.flatnonzero(labels >= 0)
+    affinity = (G @ sp.csr_matrix((np.ones(kept.size), (kept, labels[kept])),
+                                  shape=(labels.size, k))).toarray()
+    for g in np.unique(group[labels < 0]):
+        rest = np.flatnonzero((group == g) & (labels < 0))
+        free = np.setdiff1d(np.arange(k), labels[group == g])
+        rows, cols = linear_sum_assignment(-affinity[np.ix_(rest, free)])
+        labels[rest[rows]] = free[cols]
     return labels
 
 
@@ -92,11 +178,12 @@ def associate(capture: Capture, options: Options) -> np.ndarray:
     """Steps 1-3: (N, M) subject of every detection (-1: none), subjects numbered by first image.
 
     The number of subjects is ``decisions.subject_count``; with one, each image keeps its
-    detection of the largest total score. A subject needs ``decisions.SUBJECT_IMAGES`` images
-    and ``decisions.SUBJECT_VIEWS`` streams (all the capture's, when it has fewer:
-    ``decisions.subject_support``); the detections of a cluster short of either support
-    nobody and are left out (logged), except where one is its image's only detection. A capture
-    in which no cluster passes keeps them all.
+    detection of the largest total score. With more, the runs of one person along streams
+    (:func:`stream_links`) merge over the proxy graph (:func:`constrained_merging`). A subject
+    needs ``decisions.SUBJECT_IMAGES`` images and ``decisions.SUBJECT_VIEWS`` streams (all the
+    capture's, when it has fewer: ``decisions.subject_support``); the detections of a cluster
+    short of either support nobody and are left out (logged), except where one is its image's
+    only detection. A capture in which no cluster passes keeps them all.
     """
     proxies, source, slot = proxy_capture(capture)
     k = subject_count(source)
@@ -107,8 +194,13 @@ def associate(capture: Capture, options: Options) -> np.ndarray:
         assignment[img, best[img]] = 0
         return assignment
     W = shape_space_graph(proxies, options, initialise(proxies, options))
-    F = cluster_coordinates(W, k)
-    labels = constrained_clusters(F, source, k)
+    proxy = np.full(capture.x.shape[:2], -1)
+    proxy[source, slot] = np.arange(source.size)
+    linked = proxy.ravel()[stream_links(capture)]  # detections of points: proxies all
+    tracked = sp.coo_matrix((np.ones(len(linked)), (linked[:, 0], linked[:, 1])),
+                            shape=(source.size, source.size))
+    labels = constrained_merging(symmetrised(W), connected_components(tracked, directed=False)[1],
+                                 source, k)
     streams = capture.stream_ids[source]
     images, views = subject_support(np.unique(capture.stream_ids).size)
     lonely = np.bincount(source)[source] == 1
