@@ -554,8 +554,8 @@ def test_backbone_orders_lone_photos_where_the_mds_line_folds(assets_dir):
 
 def test_noisy_lone_photos_are_ordered_along_the_geodesic_line(assets_dir):
     """300 lone photos of a walk under the detector model: the initial shapes scatter far more
-    than a step, the spanning tree's longest path zigzags across them (|tau| about 0.84) and
-    the geodesic line runs along them (0.93-0.95); the shorter path through the shapes picks it."""
+    than a step, the spanning tree's longest path zigzags across them (|tau| about 0.5) and the
+    geodesic line runs along them; the shorter path through the shapes picks it."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     for seed in (0, 1):
         cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=300, seed=seed,
@@ -563,8 +563,8 @@ def test_noisy_lone_photos_are_ordered_along_the_geodesic_line(assets_dir):
         X = initialise(cap, Options())
         tau = {fn: kendall_tau(order_from_embedding(fn(X)), truth.t)
                for fn in (backbone_embedding, geodesic_embedding, shape_embedding)}
-        assert tau[backbone_embedding] < 0.87
-        assert tau[geodesic_embedding] > 0.92
+        assert tau[backbone_embedding] < 0.6
+        assert tau[geodesic_embedding] > 0.85
         assert tau[shape_embedding] == tau[geodesic_embedding]
 
 
