@@ -176,6 +176,7 @@ def _best_of(ranked: tuple[np.ndarray, ...]) -> tuple[np.ndarray, np.ndarray, np
     usable = found & np.isfinite(score[pick])
     return img, partner, np.where(usable, np.take_along_axis(s, pick, axis=0), np.nan)
 
+
 def _candidates(
     pairs: _Pairs, streams: np.ndarray, frames: np.ndarray | None, chunk: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -279,6 +280,7 @@ def _lone_pairs(
             else:
                 img, best[img], depth[img] = _best_partners(pairs, rows[r], cand[r, c])
         guesses = depth[:, None]
+
 
 def partner_streams(rays: np.ndarray, members: list[np.ndarray]) -> list[np.ndarray]:
     """The streams (indices into ``members``, ascending) whose images each stream's are
