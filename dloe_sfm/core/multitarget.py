@@ -78,15 +78,13 @@ def detection_sizes(capture: Capture) -> np.ndarray:
 def step_costs(capture: Capture, sizes: np.ndarray, a: int, b: int) -> np.ndarray:
     """(M, M) displacement between the detections of images ``a`` and ``b``: the median
     distance over the points both hold (at least 3, else inf) over the larger one's size."""
-    vis = capture.visible
-    cost = np.full((capture.x.shape[1],) * 2, np.inf)
-    for m in np.flatnonzero(vis[a].any(axis=1)):
-        for n in np.flatnonzero(vis[b].any(axis=1)):
-            both = vis[a, m] & vis[b, n]
-            if both.sum() >= 3:
-                d = np.linalg.norm(capture.x[a, m, both] - capture.x[b, n, both], axis=1)
-                cost[m, n] = np.median(d) / max(sizes[a, m], sizes[b, n], 1e-12)
-    return cost
+    both = capture.visible[a][:, None] & capture.visible[b][None]  # (M, M, P)
+    d = np.linalg.norm(capture.x[a][:, None] - capture.x[b][None], axis=-1)
+    with warnings.catch_warnings():  # all-NaN slices: pairs without a common point
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(np.where(both, d, np.nan), axis=-1)
+    scale = np.maximum(np.maximum.outer(sizes[a], sizes[b]), 1e-12)
+    return np.where(both.sum(axis=-1) >= 3, median / scale, np.inf)
 
 
 def stream_links(capture: Capture) -> np.ndarray:
