@@ -314,8 +314,9 @@ class Options:
     of the observations is not run. None or > 0, finite."""
     robust_iterations: int = 5
     """At most this many reweighted re-solves (stops earlier when nothing changes; swaps fixed in
-    one round let the next find those that were hidden behind them: docs/method.md, "Wrong
-    detections (robust rounds)"). >= 0."""
+    one round let the next find those that were hidden behind them; where the plain solve finds
+    detection noise, at most ``decisions.NOISY_ROUNDS``: docs/method.md, "Wrong detections
+    (robust rounds)"). >= 0."""
     fix_swaps: bool = True
     """Exchange left/right detections of the capture's ``symmetric_pairs`` that fit the graph's
     prediction far better swapped."""

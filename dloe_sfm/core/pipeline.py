@@ -29,6 +29,7 @@ from .capture import Capture
 from .clocked import clocks_and_offsets
 from .decisions import (
     MOST_OF_AN_IMAGE,
+    NOISY_ROUNDS,
     robust_round_undone,
     soft_rays_kept,
     spare_mispredicted,
@@ -334,7 +335,10 @@ def robust_rounds(
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
     plain, expected = result, None
     floor = residual_floor_px(result.noise_px)
-    for it in range(options.robust_iterations + 1):
+    rounds = options.robust_iterations
+    if result.noise_px > 0:
+        rounds = min(rounds, NOISY_ROUNDS)
+    for it in range(rounds + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
         if it == 1 and robust_round_undone(fit := float(np.nanmedian(res[~rejected])), expected,
@@ -360,14 +364,15 @@ def robust_rounds(
         # under noise (soft rays) the rejected set drifts a little every round
         settle = 1e-2 if result.noise_px > 0 else 1e-3
         settled = (now != rejected).sum() <= settle * current.visible.sum()
-        if it == options.robust_iterations or (not new.size and settled):
+        if it == rounds or (not new.size and settled):
             break
         expected = float(np.nanmedian(res[~now]))
-        current, swaps, rejected = trial, np.concatenate([swaps, new]), now
-        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median)%s",
-                    it + 1, len(new), int(rejected.sum()), float(np.median(scale)),
+        logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median; "
+                    "%d changed)%s", it + 1, len(new), int(now.sum()), float(np.median(scale)),
+                    int((now != rejected).sum()),
                     f"; {int(mispredicted.sum())} image(s) mispredicted in most of their points "
                     "kept whole" if mispredicted.any() else "")
+        current, swaps, rejected = trial, np.concatenate([swaps, new]), now
         solved = reweighted(current, weights) if robust else current
         again = solve_events(solved, options, labels, None, progress)
         result = replace(
