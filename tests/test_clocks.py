@@ -413,15 +413,15 @@ def test_stream_clocks_meet_the_sparse_target(sparse_walk):
 
 @pytest.mark.slow
 def test_clocks_dropped_for_the_points_still_order_the_images(shared_dir):
-    """Soccer_1 under the OpenPose detector model (pipelines/detector_captures, case detector,
-    seed 1): the held-out images prefer DLOE's graph's points to the chain along the fitted
+    """Soccer_1 under the OpenPose detector model (pipelines/detector_captures, case new,
+    seed 4): the held-out images prefer DLOE's graph's points to the chain along the fitted
     clocks, but a frame of timing hardly shows in them, and the clocks order the images better
-    than DLOE's own time line (measured |tau| 0.988 against 0.977): the result is ordered by
+    than DLOE's own time line (measured |tau| 0.994 against 0.981): the result is ordered by
     them."""
     seq = load_mocap(shared_dir / "data" / "mocap" / "li2018_train_soccer_1.npz")
     sim = simulate(seq, SimulationSettings(duration=2.9, num_streams=4,
                                            rates=(24, 25, 29.97, 30), random_offsets=True,
-                                           detector="openpose", seed=1))
+                                           detector="openpose", seed=4))
     r = reconstruct(sim.capture, Options())
     assert r.events.max() == 0 and r.clock is None and np.isfinite(r.clock_dropped).all()
     np.testing.assert_array_equal(r.order, np.argsort(r.clock_dropped, kind="stable"))

@@ -119,7 +119,7 @@ def test_soft_rays_along_the_clocks_only_for_noisy_detections(assets_dir, noise)
 
 
 def test_robust_rounds_under_detector_noise_solve_once_more(assets_dir, monkeypatch):
-    """The OpenPose model's detections: the plain solve finds their noise, and the robust rounds
+    """The OpenPose model's detections: every solve finds their noise, and the robust rounds
     re-solve ``NOISY_ROUNDS`` times (each round's scale, from a fit without the last round's
     rejects, would reject more), not up to ``robust_iterations``; the result is still closer to
     the truth than the plain solve."""

@@ -64,10 +64,12 @@ ROUND_GAIN = 0.95
 used, less the floor the detection noise leaves, is at most this share of the plain solve's
 (:func:`robust_round_undone`)."""
 NOISY_ROUNDS = 1
-"""Robust re-solves at most (``Options.robust_iterations`` if fewer) where the plain solve found
+"""Robust re-solves at most (``Options.robust_iterations`` if fewer) while the last solve found
 detection noise (soft rays): there every round's loss scale, taken from a fit that left out
 the last round's rejects, is tighter, and the rejected set grows round after round without
-settling (docs/method.md, "Wrong detections (robust rounds)")."""
+settling. Swapped detections look like noise to the plain solve; once the swaps are fixed, a
+re-solve of exact detections finds none, and the rounds go on (docs/method.md, "Wrong
+detections (robust rounds)")."""
 MOST_OF_AN_IMAGE = 0.5
 """Share of an image's observations beyond which the robust rounds take a misprediction for the
 graph's, not the detector's: none of that image's observations is dropped

@@ -323,7 +323,8 @@ def robust_rounds(
     mispredicts in most of its observations keeps them all (``decisions.spare_mispredicted``).
     Stops when no pair was swapped and the rejected set changed by at most 0.1 % of the
     observations (1 % with soft rays: under noise it drifts by a few tenths of a percent a round
-    without changing the result). Returns ``result`` re-solved, with ``outliers`` the
+    without changing the result), and after ``decisions.NOISY_ROUNDS`` rounds where the last
+    solve found detection noise. Returns ``result`` re-solved, with ``outliers`` the
     observations the final solve left out and ``swaps`` every exchange kept, and the capture it
     was solved on (swaps undone, observations reweighted)."""
     robust = options.robust_loss is not RobustLoss.NONE
@@ -335,10 +336,7 @@ def robust_rounds(
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
     plain, expected = result, None
     floor = residual_floor_px(result.noise_px)
-    rounds = options.robust_iterations
-    if result.noise_px > 0:
-        rounds = min(rounds, NOISY_ROUNDS)
-    for it in range(rounds + 1):
+    for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
         if it == 1 and robust_round_undone(fit := float(np.nanmedian(res[~rejected])), expected,
@@ -364,7 +362,11 @@ def robust_rounds(
         # under noise (soft rays) the rejected set drifts a little every round
         settle = 1e-2 if result.noise_px > 0 else 1e-3
         settled = (now != rejected).sum() <= settle * current.visible.sum()
-        if it == rounds or (not new.size and settled):
+        # under noise the scale, from a fit without the last round's rejects, only tightens
+        rounds = options.robust_iterations
+        if result.noise_px > 0:
+            rounds = min(rounds, NOISY_ROUNDS)
+        if it >= rounds or (not new.size and settled):
             break
         expected = float(np.nanmedian(res[~now]))
         logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median; "
