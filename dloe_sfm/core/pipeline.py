@@ -29,6 +29,7 @@ from .capture import Capture
 from .clocked import clocks_and_offsets
 from .decisions import (
     MOST_OF_AN_IMAGE,
+    NOISE_KEPT,
     NOISY_ROUNDS,
     robust_round_undone,
     soft_rays_kept,
@@ -324,9 +325,9 @@ def robust_rounds(
     Stops when no pair was swapped and the rejected set changed by at most 0.1 % of the
     observations (1 % with soft rays: under noise it drifts by a few tenths of a percent a round
     without changing the result), and after ``decisions.NOISY_ROUNDS`` rounds where the last
-    solve found detection noise. Returns ``result`` re-solved, with ``outliers`` the
-    observations the final solve left out and ``swaps`` every exchange kept, and the capture it
-    was solved on (swaps undone, observations reweighted)."""
+    solve still found detection noise (``decisions.NOISE_KEPT``). Returns ``result`` re-solved,
+    with ``outliers`` the observations the final solve left out and ``swaps`` every exchange
+    kept, and the capture it was solved on (swaps undone, observations reweighted)."""
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
     if not robust and (pairs is None or pairs.size == 0):
@@ -334,7 +335,7 @@ def robust_rounds(
     current, swaps = capture, np.zeros((0, 3), dtype=np.int64)
     solved = capture
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
-    plain, expected = result, None
+    plain, expected, before = result, None, result.noise_px
     floor = residual_floor_px(result.noise_px)
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
@@ -362,12 +363,13 @@ def robust_rounds(
         # under noise (soft rays) the rejected set drifts a little every round
         settle = 1e-2 if result.noise_px > 0 else 1e-3
         settled = (now != rejected).sum() <= settle * current.visible.sum()
-        # under noise the scale, from a fit without the last round's rejects, only tightens
         rounds = options.robust_iterations
-        if result.noise_px > 0:
+        if result.noise_px >= NOISE_KEPT * before > 0:
+            # the detectors' noise: the scale, from a fit without the last rejects, only tightens
             rounds = min(rounds, NOISY_ROUNDS)
         if it >= rounds or (not new.size and settled):
             break
+        before = result.noise_px
         expected = float(np.nanmedian(res[~now]))
         logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median; "
                     "%d changed)%s", it + 1, len(new), int(now.sum()), float(np.median(scale)),
