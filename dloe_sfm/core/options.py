@@ -314,8 +314,8 @@ class Options:
     of the observations is not run. None or > 0, finite."""
     robust_iterations: int = 5
     """At most this many reweighted re-solves (stops earlier when nothing changes; swaps fixed in
-    one round let the next find those that were hidden behind them; while the last solve found
-    detection noise, at most ``decisions.NOISY_ROUNDS``: docs/method.md, "Wrong detections
+    one round let the next find those that were hidden behind them; while the last solve still
+    found detection noise, at most ``decisions.NOISY_ROUNDS``: docs/method.md, "Wrong detections
     (robust rounds)"). >= 0."""
     fix_swaps: bool = True
     """Exchange left/right detections of the capture's ``symmetric_pairs`` that fit the graph's
