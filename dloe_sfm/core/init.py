@@ -213,6 +213,17 @@ def _candidates(
         yield np.concatenate(rows), np.concatenate(cols)
 
 
+def _all_pairs(
+    streams: np.ndarray, images: np.ndarray, chunk: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(rows, cols): each of ``images`` with every image of another stream, ``chunk`` images
+    at a time."""
+    for lo in range(0, images.size, chunk):
+        rows = images[lo:lo + chunk]
+        r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
+        yield rows[r], c
+
+
 def _lone_pairs(
     pairs: _Pairs, rest: np.ndarray, chunk: int
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
@@ -236,17 +247,12 @@ def _lone_pairs(
     n, p = pairs.vis.shape
     streams = pairs.streams
     if rest.size <= LONE_EXACT:
-        for lo in range(0, rest.size, chunk):
-            rows = rest[lo:lo + chunk]
-            r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
-            yield rows[r], c
+        yield from _all_pairs(streams, rest, chunk)
         return
     refs = np.unique(np.linspace(0, n - 1, LONE_REFERENCES).round().astype(np.int64))
     known = np.full((n, p), np.nan)
-    for lo in range(0, refs.size, chunk):
-        rows = refs[lo:lo + chunk]
-        r, c = np.nonzero(streams[rows][:, None] != streams[None, :])
-        img, _, known[img] = _best_partners(pairs, rows[r], c)
+    for rows, cols in _all_pairs(streams, refs, chunk):
+        img, _, known[img] = _best_partners(pairs, rows, cols)
     depth = np.full((n, p), np.nan)
     best = np.full(n, -1)
     guesses = np.full((n, LONE_HYPOTHESES, p), np.nan)

@@ -362,7 +362,8 @@ def robust_rounds(
             break
         # under noise (soft rays) the rejected set drifts a little every round
         settle = 1e-2 if result.noise_px > 0 else 1e-3
-        settled = (now != rejected).sum() <= settle * current.visible.sum()
+        changed = int((now != rejected).sum())
+        settled = changed <= settle * current.visible.sum()
         rounds = options.robust_iterations
         if result.noise_px >= NOISE_KEPT * before > 0:
             # the detectors' noise: the scale, from a fit without the last rejects, only tightens
@@ -373,7 +374,7 @@ def robust_rounds(
         expected = float(np.nanmedian(res[~now]))
         logger.info("robust round %d: %d swap(s), %d observation(s) beyond %.1f px (median; "
                     "%d changed)%s", it + 1, len(new), int(now.sum()), float(np.median(scale)),
-                    int((now != rejected).sum()),
+                    changed,
                     f"; {int(mispredicted.sum())} image(s) mispredicted in most of their points "
                     "kept whole" if mispredicted.any() else "")
         current, swaps, rejected = trial, np.concatenate([swaps, new]), now
