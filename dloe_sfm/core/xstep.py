@@ -124,16 +124,19 @@ def _hard_points(
 
     a, b, qs = si.ravel(), sk.ravel(), np.broadcast_to(qq, si.shape).ravel()
     dot = ((ri[..., 0] * rk[..., 0] + ri[..., 1] * rk[..., 1]) + ri[..., 2] * rk[..., 2]).ravel()
+    ri_t = [ri[..., t].ravel() for t in range(3)]
+    rk_t = [rk[..., t].ravel() for t in range(3)]
+    flat = [np.flatnonzero(kind) for kind in kinds]  # each kind's flat (E, P) indices
+    point = [f % p for f in flat]
 
-    def entries(pick: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """H's entries on and below the diagonal (rows >= cols) of the points ``pick`` (P,)."""
-        at = [np.flatnonzero(kind & pick) for kind in kinds]  # flat (E, P) indices
+    def entries(at: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """H's entries on and below the diagonal (rows >= cols) at the flat (E, P) indices
+        ``at`` of each of the four kinds."""
         rows, cols, vals = [b[at[0]]], [a[at[0]]], [qs[at[0]] * dot[at[0]]]
         for t in range(3):
             rows += [b[at[1]] + t, b[at[2]], b[at[3]] + t]
             cols += [a[at[1]], a[at[2]] + t, a[at[3]] + t]
-            vals += [qs[at[1]] * ri[..., t].ravel()[at[1]], qs[at[2]] * rk[..., t].ravel()[at[2]],
-                     qs[at[3]]]
+            vals += [qs[at[1]] * ri_t[t][at[1]], qs[at[2]] * rk_t[t][at[2]], qs[at[3]]]
         return np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
 
     g = (Q @ np.where(vis[..., None], C[:, None, :], 0.0).reshape(n, 3 * p)).reshape(n, p, 3)
@@ -146,7 +149,7 @@ def _hard_points(
     z = np.empty(rhs.size)
     solved = np.zeros(p, dtype=bool)
     if banded.any():
-        rows, col, vals = entries(banded)
+        rows, col, vals = entries([f[banded[j]] for f, j in zip(flat, point, strict=True)])
         w = int(width[banded].max())
         band = np.zeros((rhs.size, w + 1))  # rows of the other points: reg on the diagonal only
         band.reshape(-1)[col * (w + 1) + (rows - col)] = vals
@@ -154,9 +157,14 @@ def _hard_points(
         zb = _banded_cholesky(band, np.where(np.repeat(banded, m), rhs, 0.0))
         if zb is not None:
             z, solved = zb, banded
-    for j in np.flatnonzero(~solved):
+    rest = np.flatnonzero(~solved)
+    if rest.size:  # one by one: each kind's indices grouped by point (flat order within one)
+        single = [np.argsort(j, kind="stable") for j in point]
+        ends = [np.searchsorted(j[o], np.arange(p + 1)) for j, o in zip(point, single, strict=True)]
+    for j in rest:
         lo, hi = base[j], base[j] + m[j]
-        rows, col, vals = entries(np.arange(p) == j)
+        rows, col, vals = entries([f[o[e[j]:e[j + 1]]]
+                                   for f, o, e in zip(flat, single, ends, strict=True)])
         z[lo:hi] = _point_system(rows - lo, col - lo, vals, int(m[j]), rhs[lo:hi], reg,
                                  width=int(width[j]) if banded[j] else None)
     X = np.empty((n, p, 3))
