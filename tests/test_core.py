@@ -635,21 +635,24 @@ def test_hard_x_step_in_groups_of_points_matches_one_group(rng, monkeypatch):
 
 
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])
-@pytest.mark.parametrize("graph", ["chain", "long edges", "indefinite"])
+@pytest.mark.parametrize("graph", ["chain", "long edges", "long edges, small", "indefinite"])
 def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, graph):
-    """A chain-like graph is solved as a band; one with long edges (a wide band), or a system
-    the banded Cholesky finds indefinite, by SuperLU: all give the dense solution, with
-    unobserved points taking 3 unknowns each."""
+    """A chain-like graph is solved as a band; one with long edges (a wide band) by SuperLU,
+    unless the wide band's work is small (``BAND_WORK``); a system the banded Cholesky finds
+    indefinite by SuperLU: all give the dense solution, with unobserved points taking 3
+    unknowns each."""
     cap, truth = small_capture(rng, n_per_stream=20, p=4)
     n, p = cap.num_images, cap.num_points
     cap.x[rng.random((n, p)) < 0.3] = np.nan
     prob = build_problem(cap, Options(), np.zeros(3), 1.0)
     W, lambda1 = prob.chain, 0.05
-    if graph == "long edges":
+    if graph.startswith("long edges"):
         cols = rng.integers(0, n, (n, 6)).ravel()
         W = sp.csr_matrix((np.full(6 * n, 1 / 6), (np.repeat(np.arange(n), 6), cols)), (n, n))
         # this small system's band would still fit the default width: as if it were large
         monkeypatch.setattr(xstep, "BAND_WIDTH", 8)
+        if graph == "long edges":
+            monkeypatch.setattr(xstep, "BAND_WORK", 0)
     if graph == "indefinite":
         lambda1 = -3.0
     superlu = xstep._superlu
@@ -657,7 +660,7 @@ def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, gra
     monkeypatch.setattr(xstep, "_superlu", lambda H, b: sparse_solves.append(1) or superlu(H, b))
     D = rng.uniform(0.5, 1.5, n)
     X = x_step(W, D, prob, lambda1=lambda1, lambda2=lambda2, X_prev=truth.X)
-    assert len(sparse_solves) == (0 if graph == "chain" else p)
+    assert len(sparse_solves) == (p if graph in ("long edges", "indefinite") else 0)
     ref = dense_x_step(W, D, prob, lambda1, lambda2)
     tol = 1e-6 if graph == "indefinite" else 1e-8  # SuperLU does not pivot here
     assert np.abs(X - ref).max() < tol * (1 + np.abs(ref).max())

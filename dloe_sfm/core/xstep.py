@@ -14,7 +14,11 @@ from .steps import Problem, smoothness_matrix
 
 BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
-``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), wider ones by SuperLU (:func:`x_step`)."""
+``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), or wider where the band's work m b^2 is
+at most :data:`BAND_WORK`; the others by SuperLU (:func:`x_step`)."""
+BAND_WORK = 2**25
+"""Largest m b^2 of a band wider than ``BAND_WIDTH`` the X-step still factors as a band: a few
+milliseconds of LAPACK, less than SuperLU takes on those systems (docs/method.md, "Speed")."""
 BATCH = 2**20
 """With hard rays the X-step solves the points in groups of about this many of Q's entries over
 all of them (:func:`_hard_points`: one factorisation per group, memory bounded at any size)."""
@@ -42,7 +46,7 @@ def x_step(
     (1 or 3 per image): its system is then a band, assembled directly from Q's entries and
     solved by LAPACK's banded Cholesky in O(m b^2) for m unknowns and bandwidth b. A band wider
     than ``max(BAND_WIDTH, sqrt(m))`` (a graph with long edges, where the band would approach a
-    dense matrix), or a system the banded Cholesky finds not numerically positive definite, goes
+    dense matrix) unless it is small (:func:`_band_pays`), or a system the banded Cholesky finds not numerically positive definite, goes
     to SuperLU instead (:func:`_superlu`).
     """
     n, p = prob.rays.shape[:2]
@@ -64,7 +68,7 @@ def x_step(
     else:
         width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)
         band_Q = None
-        if width <= max(BAND_WIDTH, np.sqrt(3 * n)):
+        if _band_pays(3 * n, width):
             # kron(Q, I3) as a band (_banded_cholesky), image n's coordinates at 3 rank_n + t
             band_Q = np.zeros((3 * n, width + 1))
             band_Q[3 * rank[qi][:, None] + np.arange(3), 3 * (rank[qk] - rank[qi])[:, None]] = (
@@ -166,11 +170,16 @@ def _hard_points(
         rows, col, vals = entries([f[o[e[j]:e[j + 1]]]
                                    for f, o, e in zip(flat, single, ends, strict=True)])
         z[lo:hi] = _point_system(rows - lo, col - lo, vals, int(m[j]), rhs[lo:hi], reg,
-                                 width=int(width[j]) if banded[j] else None)
+                                 width=int(width[j]) if _band_pays(m[j], width[j]) else None)
     X = np.empty((n, p, 3))
     X[img, pj] = C[img] + rays[img, pj] * z[start[img, pj]][:, None]
     X[hole, qj] = z[start[hole, qj][:, None] + np.arange(3)]
     return X
+
+
+def _band_pays(m: int, width: int) -> bool:
+    """Whether a system of m unknowns and bandwidth ``width`` is factored as a band."""
+    return width <= max(BAND_WIDTH, np.sqrt(m)) or m * width**2 <= BAND_WORK
 
 
 def _point_system(rows: np.ndarray, cols: np.ndarray, vals: np.ndarray, m: int,
