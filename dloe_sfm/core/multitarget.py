@@ -309,7 +309,9 @@ def reconstruct_subjects(
     ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
 
     The association is then checked against the solution (``reassociate``) and, where it
-    changed, aggregated and solved again, at most ``rounds`` times.
+    changed, aggregated and solved again, at most ``rounds`` times: from the robust rounds on,
+    weighted by the last solution's prediction (``pipeline.solve_single``'s ``start``), since
+    a few images changed.
     """
     started = time.perf_counter()
     assignment = associate(capture, options)
@@ -317,9 +319,11 @@ def reconstruct_subjects(
     p = capture.num_points
     logger.info("%d subject(s) in %d images (%d detections unassigned)", s,
                 capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
+    result = None
     for it in range(rounds):
         merged = aggregate(capture, assignment)
-        result = solve_single(merged.validate("aggregated subjects"), options, progress, s)
+        result = solve_single(merged.validate("aggregated subjects"), options, progress, s,
+                              start=result)
         if s == 1 or it == rounds - 1:
             break
         new = reassociate(capture, assignment, result)

@@ -58,7 +58,12 @@ logger = logging.getLogger("dloe_sfm")
 
 
 def solve_single(
-    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
+    capture: Capture,
+    options: Options,
+    progress: Progress | None = None,
+    subjects: int = 1,
+    *,
+    start: Result | None = None,
 ) -> Result:
     """Estimate every image's 3D points and the images' temporal graph and order (one subject).
 
@@ -69,15 +74,29 @@ def solve_single(
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
     streams' fitted clocks (``clocked.clocks_and_offsets``; with ``auto`` only where they predict
     held-out detections about as well as the graph, ``decisions.clock_verdict``). ``subjects``: the
-    people whose points the capture's columns hold (``multitarget.aggregate``), for the events."""
+    people whose points the capture's columns hold (``multitarget.aggregate``), for the events.
+
+    ``start``: a solution of the same images (and events) whose graph predicts this capture's
+    observations well (the solve of an association changed in a few images). Where it found
+    detection noise, its prediction weights the first robust round in place of a plain solve,
+    with a re-solve even when no observation is rejected; otherwise (exact detections, no
+    robust loss) it is not used."""
     started = time.perf_counter()
-    X_world = initialise(capture, options)
-    labels = np.zeros(capture.num_images, dtype=np.int64)
-    if options.segment_events:
-        labels = initial_events(capture, options, X_world, subjects)
-    init_seconds = time.perf_counter() - started
-    result = solve_events(capture, options, labels, X_world, progress)
-    result, solved = robust_rounds(capture, options, labels, result, progress)
+    if start is not None and not (reweighs(capture, options) and start.noise_px > 0):
+        # no robust round to start, or exact detections, which may keep a plain solve
+        start = None
+    if start is None:
+        X_world = initialise(capture, options)
+        labels = np.zeros(capture.num_images, dtype=np.int64)
+        if options.segment_events:
+            labels = initial_events(capture, options, X_world, subjects)
+        init_seconds = time.perf_counter() - started
+        result = solve_events(capture, options, labels, X_world, progress)
+    else:
+        labels, init_seconds = start.events, 0.0
+        result = replace(start, swaps=None, outliers=None, solved=None)
+    result, solved = robust_rounds(capture, options, labels, result, progress,
+                                   resumed=start is not None)
     auto_noise = options.noise_px == AUTO
     if auto_noise:
         options = options.replace(noise_px=result.noise_px)
@@ -306,12 +325,21 @@ def solve_event(
     )
 
 
+def reweighs(capture: Capture, options: Options) -> bool:
+    """Whether :func:`robust_rounds` re-solves ``capture`` at all: with a robust loss, or with
+    symmetric pairs whose swaps to fix."""
+    pairs = capture.symmetric_pairs if options.fix_swaps else None
+    return options.robust_loss is not RobustLoss.NONE or (pairs is not None and pairs.size > 0)
+
+
 def robust_rounds(
     capture: Capture,
     options: Options,
     labels: np.ndarray,
     result: Result,
     progress: Progress | None = None,
+    *,
+    resumed: bool = False,
 ) -> tuple[Result, Capture]:
     """Iteratively reweighted re-solves against wrong detections and left/right swaps.
 
@@ -327,15 +355,19 @@ def robust_rounds(
     without changing the result), and after ``decisions.NOISY_ROUNDS`` rounds where the last
     solve still found detection noise (``decisions.NOISE_KEPT``). Returns ``result`` re-solved,
     with ``outliers`` the observations the final solve left out and ``swaps`` every exchange
-    kept, and the capture it was solved on (swaps undone, observations reweighted)."""
+    kept, and the capture it was solved on (swaps undone, observations reweighted).
+
+    ``resumed``: ``result`` solved other observations of these images (``solve_single``'s
+    ``start``), so the first round re-solves whatever it rejects, and where that round is
+    undone the capture is solved plainly (it has no plain solve yet)."""
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
-    if not robust and (pairs is None or pairs.size == 0):
+    if not reweighs(capture, options):
         return result, capture
     current, swaps = capture, np.zeros((0, 3), dtype=np.int64)
     solved = capture
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
-    plain, expected, before = result, None, result.noise_px
+    plain, expected, before = None if resumed else result, None, result.noise_px
     floor = residual_floor_px(result.noise_px)
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
@@ -344,6 +376,8 @@ def robust_rounds(
                                            floor):
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
                         "%.2f -> %.2f px, %.2f px of it noise)", expected, fit, floor)
+            if plain is None:
+                plain = solve_events(capture, options, labels, None, progress)
             result, current, swaps, solved = plain, capture, swaps[:0], capture
             rejected = np.zeros_like(rejected)
             break
@@ -368,7 +402,7 @@ def robust_rounds(
         if result.noise_px >= NOISE_KEPT * before > 0:
             # the detectors' noise: the scale, from a fit without the last rejects, only tightens
             rounds = min(rounds, NOISY_ROUNDS)
-        if it >= rounds or (not new.size and settled):
+        if it >= rounds or (not new.size and settled and not (resumed and it == 0)):
             break
         before = result.noise_px
         expected = float(np.nanmedian(res[~now]))
