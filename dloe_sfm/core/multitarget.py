@@ -29,7 +29,7 @@ from .capture import Capture, project
 from .decisions import subject_count, subject_support
 from .events import stream_runs, symmetrised
 from .options import Options
-from .pipeline import shape_space_graph, solve_single
+from .pipeline import finish_single, plain_solve, reweighs, shape_space_graph, solve_single
 from .problem import initialise
 from .result import Result
 from .robust import predicted
@@ -298,6 +298,16 @@ def detection_confidence(capture: Capture, assignment: np.ndarray, result: Resul
     return np.where(assignment >= 0, ratio, np.nan)
 
 
+def checked_again(capture: Capture, assignment: np.ndarray, result: Result
+                  ) -> tuple[np.ndarray, bool]:
+    """(assignment matched again to ``result``, whether any image changed) (``reassociate``)."""
+    new = reassociate(capture, assignment, result)
+    changed = int((new != assignment).any(axis=1).sum())
+    if changed:
+        logger.info("association: %d image(s) changed, solving again", changed)
+    return new, changed > 0
+
+
 def reconstruct_subjects(
     capture: Capture,
     options: Options,
@@ -309,9 +319,11 @@ def reconstruct_subjects(
     ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
 
     The association is then checked against the solution (``reassociate``) and, where it
-    changed, aggregated and solved again, at most ``rounds`` times: from the robust rounds on,
-    weighted by the last solution's prediction (``pipeline.solve_single``'s ``start``), since
-    a few images changed.
+    changed, aggregated and solved again, at most ``rounds`` associations in all. Under
+    detector noise (the plain solve found some, and the robust rounds run) the first check is
+    against the plain solve, before its robust round, and each new association is solved by
+    the robust round resumed from the last solution (``pipeline.finish_single``), since a few
+    images changed: one solve per association after the first instead of two.
     """
     started = time.perf_counter()
     assignment = associate(capture, options)
@@ -319,19 +331,26 @@ def reconstruct_subjects(
     p = capture.num_points
     logger.info("%d subject(s) in %d images (%d detections unassigned)", s,
                 capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
-    result = None
-    for it in range(rounds):
-        merged = aggregate(capture, assignment)
-        result = solve_single(merged.validate("aggregated subjects"), options, progress, s,
-                              start=result)
-        if s == 1 or it == rounds - 1:
-            break
-        new = reassociate(capture, assignment, result)
-        changed = int((new != assignment).any(axis=1).sum())
+    merged = aggregate(capture, assignment).validate("aggregated subjects")
+    result, labels = plain_solve(merged, options, progress, s)
+    # under detector noise the robust rounds re-solve once, from a solution's prediction: the
+    # association is checked against the plain solve already, and a later round re-solves
+    # from the last solution (finish_single's resumed) rather than from the start
+    resume = s > 1 and reweighs(merged, options) and result.noise_px > 0
+    checks, changed = (rounds - 1 if s > 1 else 0), False
+    if resume and checks:
+        assignment, changed = checked_again(capture, assignment, result)
+        checks -= 1
+        if changed:
+            merged = aggregate(capture, assignment).validate("aggregated subjects")
+    result = finish_single(merged, options, result, labels, progress, resumed=changed)
+    for _ in range(checks):
+        assignment, changed = checked_again(capture, assignment, result)
         if not changed:
             break
-        logger.info("association: %d image(s) changed, solving again", changed)
-        assignment = new
+        merged = aggregate(capture, assignment).validate("aggregated subjects")
+        result = (finish_single(merged, options, result, labels, progress, resumed=True)
+                  if resume else solve_single(merged, options, progress, s))
     return replace(
         result,
         seconds=time.perf_counter() - started,

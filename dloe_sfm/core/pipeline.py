@@ -58,49 +58,64 @@ logger = logging.getLogger("dloe_sfm")
 
 
 def solve_single(
-    capture: Capture,
-    options: Options,
-    progress: Progress | None = None,
-    subjects: int = 1,
-    *,
-    start: Result | None = None,
+    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
 ) -> Result:
     """Estimate every image's 3D points and the images' temporal graph and order (one subject).
 
     With ``options.segment_events``, temporally disjoint events are found first
-    (:func:`initial_events`) and each event is sequenced and reconstructed on its own. With a
-    robust loss (or symmetric pairs to check) the observations are then reweighted from the
-    solution's residuals and the capture re-solved (:func:`robust_rounds`). Unless
+    (:func:`initial_events`) and each event is sequenced and reconstructed on its own
+    (:func:`plain_solve`). With a robust loss (or symmetric pairs to check) the observations are
+    then reweighted from the solution's residuals and the capture re-solved; unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
-    streams' fitted clocks (``clocked.clocks_and_offsets``; with ``auto`` only where they predict
-    held-out detections about as well as the graph, ``decisions.clock_verdict``). ``subjects``: the
-    people whose points the capture's columns hold (``multitarget.aggregate``), for the events.
+    streams' fitted clocks (:func:`finish_single`). ``subjects``: the people whose points the
+    capture's columns hold (``multitarget.aggregate``), for the events."""
+    return finish_single(capture, options, *plain_solve(capture, options, progress, subjects),
+                         progress)
 
-    ``start``: a solution of the same images (and events) whose graph predicts this capture's
-    observations well (the solve of an association changed in a few images). Where it found
-    detection noise, its prediction weights the first robust round in place of a plain solve,
-    with a re-solve even when no observation is rejected; otherwise (exact detections, no
-    robust loss) it is not used."""
+
+def plain_solve(
+    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
+) -> tuple[Result, np.ndarray]:
+    """The first part of :func:`solve_single`: initialise, find the events and solve each
+    (:func:`solve_events`); no robust round, no clocks. Returns the result and the (N,) event
+    labels it was solved with."""
     started = time.perf_counter()
-    if start is not None and not (reweighs(capture, options) and start.noise_px > 0):
-        # no robust round to start, or exact detections, which may keep a plain solve
-        start = None
-    if start is None:
-        X_world = initialise(capture, options)
-        labels = np.zeros(capture.num_images, dtype=np.int64)
-        if options.segment_events:
-            labels = initial_events(capture, options, X_world, subjects)
-        init_seconds = time.perf_counter() - started
-        result = solve_events(capture, options, labels, X_world, progress)
-    else:
-        labels, init_seconds = start.events, 0.0
-        result = replace(start, swaps=None, outliers=None, solved=None)
-    result, solved = robust_rounds(capture, options, labels, result, progress,
-                                   resumed=start is not None)
+    X_world = initialise(capture, options)
+    labels = np.zeros(capture.num_images, dtype=np.int64)
+    if options.segment_events:
+        labels = initial_events(capture, options, X_world, subjects)
+    init_seconds = time.perf_counter() - started
+    result = solve_events(capture, options, labels, X_world, progress)
+    timings = {**result.timings, "init": result.timings["init"] + init_seconds}
+    return replace(result, timings=timings, seconds=time.perf_counter() - started), labels
+
+
+def finish_single(
+    capture: Capture,
+    options: Options,
+    result: Result,
+    labels: np.ndarray,
+    progress: Progress | None = None,
+    *,
+    resumed: bool = False,
+) -> Result:
+    """The rest of :func:`solve_single` after ``result``, a solve of ``capture`` with the events
+    ``labels``: the robust rounds (:func:`robust_rounds`) and the stream clocks
+    (``clocked.clocks_and_offsets``; with ``auto`` only where they predict held-out detections
+    about as well as the graph, ``decisions.clock_verdict``).
+
+    ``resumed``: ``result`` is the finished solve of other observations of these images (an
+    association changed in a few of them, ``multitarget.reconstruct_subjects``): its prediction
+    weights the first robust round, which re-solves ``capture`` whatever it rejects."""
+    started, before = time.perf_counter(), result.seconds
+    if resumed:
+        result = replace(result, swaps=np.zeros((0, 3), dtype=np.int64), solved=None,
+                         outliers=np.zeros((0, 2), dtype=np.int64))
+    result, solved = robust_rounds(capture, options, labels, result, progress, resumed=resumed)
     auto_noise = options.noise_px == AUTO
     if auto_noise:
         options = options.replace(noise_px=result.noise_px)
-    timings = {**result.timings, "init": result.timings["init"] + init_seconds}
+    timings = dict(result.timings)
     if options.stream_clocks is not Clocks.OFF:
         # the rounds' verdict is revisited where they found wrong detections
         checked = None
@@ -110,7 +125,7 @@ def solve_single(
         result = clocks_and_offsets(capture, solved, options, result, auto_noise=auto_noise,
                                     checked=checked)
         timings["clocks"] = time.perf_counter() - t_clocks
-    return replace(result, timings=timings, seconds=time.perf_counter() - started)
+    return replace(result, timings=timings, seconds=before + time.perf_counter() - started)
 
 
 def shape_space_graph(capture: Capture, options: Options, X_world: np.ndarray) -> sp.csr_matrix:
@@ -357,9 +372,9 @@ def robust_rounds(
     with ``outliers`` the observations the final solve left out and ``swaps`` every exchange
     kept, and the capture it was solved on (swaps undone, observations reweighted).
 
-    ``resumed``: ``result`` solved other observations of these images (``solve_single``'s
-    ``start``), so the first round re-solves whatever it rejects, and where that round is
-    undone the capture is solved plainly (it has no plain solve yet)."""
+    ``resumed``: ``result`` is the robust solve of other observations of these images
+    (:func:`finish_single`), so the first round re-solves whatever it rejects, and is never
+    undone: a robust solution's fit is no plain solve's to compare with."""
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
     if not reweighs(capture, options):
@@ -367,17 +382,15 @@ def robust_rounds(
     current, swaps = capture, np.zeros((0, 3), dtype=np.int64)
     solved = capture
     rejected = np.zeros(capture.x.shape[:2], dtype=bool)
-    plain, expected, before = None if resumed else result, None, result.noise_px
+    plain, expected, before = result, None, result.noise_px
     floor = residual_floor_px(result.noise_px)
     for it in range(options.robust_iterations + 1):
         X_pred = predicted(result.W, result.X)
         res = residuals_px(current, X_pred)
-        if it == 1 and robust_round_undone(fit := float(np.nanmedian(res[~rejected])), expected,
-                                           floor):
+        if it == 1 and not resumed and robust_round_undone(
+                fit := float(np.nanmedian(res[~rejected])), expected, floor):
             logger.info("robust round 1 undone: the fit did not tighten (median residual "
                         "%.2f -> %.2f px, %.2f px of it noise)", expected, fit, floor)
-            if plain is None:
-                plain = solve_events(capture, options, labels, None, progress)
             result, current, swaps, solved = plain, capture, swaps[:0], capture
             rejected = np.zeros_like(rejected)
             break

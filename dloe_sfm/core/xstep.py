@@ -46,8 +46,9 @@ def x_step(
     (1 or 3 per image): its system is then a band, assembled directly from Q's entries and
     solved by LAPACK's banded Cholesky in O(m b^2) for m unknowns and bandwidth b. A band wider
     than ``max(BAND_WIDTH, sqrt(m))`` (a graph with long edges, where the band would approach a
-    dense matrix) unless it is small (:func:`_band_pays`), or a system the banded Cholesky finds not numerically positive definite, goes
-    to SuperLU instead (:func:`_superlu`).
+    dense matrix) unless its work is small (:func:`_band_pays`), or a system the banded
+    Cholesky finds not numerically positive definite, goes to SuperLU instead
+    (:func:`_superlu`).
     """
     n, p = prob.rays.shape[:2]
     Q = smoothness_matrix(W, D, lambda1)
