@@ -1,9 +1,10 @@
 """One subject's reconstruction, the method's steps from the top (docs/method.md, "The steps as
 implemented"): :func:`solve_single` initialises, finds the events (:func:`initial_events`),
-solves each (:func:`solve_events`, :func:`solve_event`: hard rays, the noise level, soft rays,
-the order), re-solves against wrong detections (:func:`robust_rounds`) and places the events on
-their streams' clocks (``clocked.clocks_and_offsets``); ``solver.reconstruct`` then assesses
-every image. The choices the data make along the way are in ``core.decisions``."""
+solves each (:func:`plain_solve`: :func:`solve_events`, :func:`solve_event`: hard rays, the
+noise level, soft rays, the order), then re-solves against wrong detections
+(:func:`finish_single`: :func:`robust_rounds`) and places the events on their streams' clocks
+(``clocked.clocks_and_offsets``); ``solver.reconstruct`` then assesses every image. The
+choices the data make along the way are in ``core.decisions``."""
 
 from __future__ import annotations
 
