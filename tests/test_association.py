@@ -25,7 +25,7 @@ from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.keypoints import load_layout, read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.synth import SimulationSettings, load_mocap
-from dloe_sfm.synth.scenarios import simulate_people
+from dloe_sfm.synth.scenarios import add_false_detections, simulate_people
 
 QUICK = SimulationSettings(duration=1.0, rate=15)
 
@@ -143,6 +143,23 @@ def test_detection_confidence_tells_the_right_subject_from_a_wrong_one(assets_di
     wrong = result.assignment.copy()
     wrong[3] = wrong[3, ::-1]
     assert (detection_confidence(cap, wrong, result)[3] == 0.0).all()
+
+
+def test_false_detections_that_fit_no_motion_make_no_subject(assets_dir) -> None:
+    """Two people under the detector model and a third detection in 30 % of the images,
+    another image's detection moved 50-200 px (``add_false_detections``): enough images for a
+    third subject, which the association makes; its detections fit no motion
+    (``unfit_subjects``), so it is dropped, they are left out, and the two people keep every
+    image."""
+    seqs = [load_mocap(assets_dir / "mocap" / f"{m}.npz") for m in ("walking_1", "jumping_1")]
+    cap, sim = simulate_people(seqs, replace(QUICK, detector="openpose"), shuffle=False)
+    cap, gt = add_false_detections(cap, sim, 0.3, seed=4)
+    assert associate(cap, Options()).max() == 2
+    result = reconstruct(cap, Options(stream_clocks="off"))
+    false = (gt.subjects == -1) & cap.visible.any(axis=2)
+    assert result.assignment.max() == 1 and (result.assignment[false] == -1).all()
+    assert purity(result.assignment[:, :2], sim.subjects) == 1.0
+    assert (result.assignment[:, :2] >= 0).all()
 
 
 def test_a_robust_round_resumed_from_another_association_fits_its_own(assets_dir) -> None:

@@ -12,7 +12,7 @@ from dloe_sfm.stages import simulate as simulate_stage
 from dloe_sfm.synth import SimulationSettings, load_mocap, ring_cameras, simulate
 from dloe_sfm.synth.detector import DetectorModel
 from dloe_sfm.synth.mocap import _interpolate, _ring_radius, _window
-from dloe_sfm.synth.scenarios import simulate_people
+from dloe_sfm.synth.scenarios import add_false_detections, limit_presence, simulate_people
 
 RATES = (24.0, 25.0, 29.97, 30.0)
 
@@ -140,6 +140,34 @@ def test_people_shuffle_keeps_scores_and_truth_with_their_detections(jumping, as
     np.testing.assert_array_equal(cap.confidence, ref.confidence[rows, slots])
     for name in ("x_clean", "outliers", "swaps"):
         np.testing.assert_array_equal(getattr(truth, name), getattr(ref_truth, name)[rows, slots])
+
+
+@pytest.mark.filterwarnings("ignore:Mean of empty slice", "ignore:Degrees of freedom",
+                            "ignore:All-NaN slice")
+def test_a_late_person_and_false_detections_keep_their_truth(jumping, assets_dir):
+    """``limit_presence`` removes a person's detections outside its interval (truth -1 there);
+    ``add_false_detections`` adds a slot holding, in about the asked share of images, another
+    image's detection moved 50-200 px, with truth -1 and no clean projection."""
+    walking = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    cap, truth = simulate_people([jumping, walking], SimulationSettings(duration=1.0, seed=2))
+    late, late_truth = limit_presence(cap, truth, 1, 0.3, 0.7)
+    inside = (truth.t >= 0.3) & (truth.t <= 0.7)
+    assert 0 < inside.sum() < cap.num_images
+    assert ((late_truth.subjects == 1).any(axis=1) == inside).all()
+    assert (late.visible.any(axis=2) == (late_truth.subjects >= 0)).all()
+    more, more_truth = add_false_detections(late, late_truth, 0.25, seed=1)
+    n = cap.num_images
+    assert more.x.shape[1] == 3 and more_truth.subjects.shape == (n, 3)
+    false = np.flatnonzero(more.visible[:, 2].any(axis=1))
+    assert 0.1 * n < false.size < 0.4 * n and (more_truth.subjects[:, 2] == -1).all()
+    assert np.isnan(more_truth.x_clean[:, 2]).all()
+    np.testing.assert_array_equal(more.x[:, :2], late.x)
+    for i in false:  # a real detection of another image (another instant), moved as a whole
+        d = late.x - more.x[i, 2]
+        spread = np.nanmax(np.nanstd(d, axis=2), axis=-1)
+        src = np.unravel_index(np.nanargmin(spread), spread.shape)
+        assert spread[src] < 1e-9 and src[0] != i
+        assert 50 <= np.linalg.norm(np.nanmean(d[src], axis=0)) <= 200
 
 
 def test_cli_refuses_swaps_with_the_detector(assets_dir, tmp_path):

@@ -26,7 +26,7 @@ from scipy.sparse.csgraph import connected_components
 
 from .alternation import Progress
 from .capture import Capture, project
-from .decisions import subject_count, subject_support
+from .decisions import SUBJECT_CONFIDENCE, subject_count, subject_support
 from .events import stream_runs, symmetrised
 from .options import Options
 from .pipeline import finish_single, plain_solve, reweighs, shape_space_graph, solve_single
@@ -308,6 +308,37 @@ def checked_again(capture: Capture, assignment: np.ndarray, result: Result
     return new, changed > 0
 
 
+def unfit_subjects(capture: Capture, assignment: np.ndarray, result: Result) -> np.ndarray:
+    """The subjects of ``result`` that are no person (``decisions.SUBJECT_CONFIDENCE``: their
+    detections' median ``detection_confidence`` is below it), unless leaving their detections
+    out would leave an image with none, or no subject; each is logged."""
+    s = int(assignment.max()) + 1
+    if s < 2:
+        return np.zeros(0, dtype=np.int64)
+    sure = detection_confidence(capture, assignment, result)
+    median = np.array([np.median(sure[assignment == k]) for k in range(s)])
+    unfit = np.flatnonzero(median < SUBJECT_CONFIDENCE)
+    others = (assignment >= 0) & ~np.isin(assignment, unfit)
+    if unfit.size == s or not others.any(axis=1)[(assignment >= 0).any(axis=1)].all():
+        return np.zeros(0, dtype=np.int64)
+    for k in unfit:
+        logger.warning("%d detection(s) in %d image(s) fit no motion (median confidence %.2f, "
+                       "a person's needs %.2f): left out",
+                       int((assignment == k).sum()), int((assignment == k).any(axis=1).sum()),
+                       median[k], SUBJECT_CONFIDENCE)
+    return unfit
+
+
+def without_subjects(assignment: np.ndarray, subjects: np.ndarray) -> np.ndarray:
+    """``assignment`` without ``subjects``: their detections -1, the others renumbered in
+    order."""
+    s = int(assignment.max()) + 1
+    remap = np.full(s, -1)
+    keep = np.setdiff1d(np.arange(s), subjects)
+    remap[keep] = np.arange(keep.size)
+    return np.where(assignment >= 0, remap[np.maximum(assignment, 0)], -1)
+
+
 def reconstruct_subjects(
     capture: Capture,
     options: Options,
@@ -323,7 +354,9 @@ def reconstruct_subjects(
     detector noise (the plain solve found some, and the robust rounds run) the first check is
     against the plain solve, before its robust round, and each new association is solved by
     the robust round resumed from the last solution (``pipeline.finish_single``), since a few
-    images changed: one solve per association after the first instead of two.
+    images changed: one solve per association after the first instead of two. A subject whose
+    detections fit no motion in the last solution (:func:`unfit_subjects`) is then dropped, its
+    detections left out, and the capture solved again from the start without it.
     """
     started = time.perf_counter()
     assignment = associate(capture, options)
@@ -351,6 +384,12 @@ def reconstruct_subjects(
         merged = aggregate(capture, assignment).validate("aggregated subjects")
         result = (finish_single(merged, options, result, labels, progress, resumed=True)
                   if resume else solve_single(merged, options, progress, s))
+    unfit = unfit_subjects(capture, assignment, result)
+    if unfit.size:  # solved from the start: the robust rounds weight the others afresh
+        assignment = without_subjects(assignment, unfit)
+        s = int(assignment.max()) + 1
+        merged = aggregate(capture, assignment).validate("aggregated subjects")
+        result = solve_single(merged, options, progress, s)
     return replace(
         result,
         seconds=time.perf_counter() - started,

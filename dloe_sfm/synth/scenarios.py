@@ -117,6 +117,60 @@ def simulate_people(
     return Simulated(capture, truth)
 
 
+def limit_presence(
+    capture: Capture, truth: GroundTruth, person: int, start: float, end: float
+) -> Simulated:
+    """A copy of a several-subject capture (``simulate_people``) where ``person`` is detected
+    only from ``start`` to ``end`` seconds (one who enters late and leaves early): its
+    detections at other times are removed and their slots' truth ``subjects`` set to -1."""
+    away = (truth.subjects == person) & ~((truth.t >= start) & (truth.t <= end))[:, None]
+    x = np.where(away[..., None, None], np.nan, capture.x)
+    confidence = None
+    if capture.confidence is not None:
+        confidence = np.where(away[..., None], 0.0, capture.confidence)
+    return Simulated(replace(capture, x=x, confidence=confidence),
+                     replace(truth, subjects=np.where(away, -1, truth.subjects)))
+
+
+def add_false_detections(
+    capture: Capture, truth: GroundTruth, fraction: float, *, low: float = 50.0,
+    high: float = 200.0, seed: int = 0,
+) -> Simulated:
+    """A copy of a several-subject capture with one more detection slot, holding in
+    ``fraction`` of the images a false detection: a person's detection from another image
+    (another instant and camera), moved ``low``-``high`` pixels in a random direction, like a
+    reflection or a misplaced skeleton that supports nobody. Its truth ``subjects`` is -1 and
+    its ``x_clean`` NaN."""
+    rng = np.random.default_rng(seed)
+    n, m = capture.x.shape[:2]
+    held = np.argwhere(np.isfinite(capture.x).all(axis=-1).any(axis=-1))  # (image, slot)
+    hit = np.flatnonzero(rng.random(n) < fraction)
+    source = held[rng.integers(0, len(held), hit.size)]
+    while (same := source[:, 0] == hit).any():  # another image's, never the image's own
+        source[same] = held[rng.integers(0, len(held), same.sum())]
+    angle = rng.uniform(0, 2 * np.pi, hit.size)
+    shift = rng.uniform(low, high, hit.size)[:, None] * np.stack([np.cos(angle), np.sin(angle)], 1)
+    extra = np.full((n, 1, *capture.x.shape[2:]), np.nan)
+    extra[hit, 0] = capture.x[source[:, 0], source[:, 1]] + shift[:, None]
+    confidence = None
+    if capture.confidence is not None:
+        more = np.zeros((n, 1, capture.confidence.shape[2]))
+        more[hit, 0] = capture.confidence[source[:, 0], source[:, 1]]
+        confidence = np.concatenate([capture.confidence, more], axis=1)
+
+    def padded(a: np.ndarray | None, fill: float | bool) -> np.ndarray | None:
+        """``a`` (N, M, ...) with the new slot holding ``fill``."""
+        if a is None:
+            return None
+        return np.concatenate([a, np.full((n, 1, *a.shape[2:]), fill, dtype=a.dtype)], axis=1)
+
+    return Simulated(
+        replace(capture, x=np.concatenate([capture.x, extra], axis=1), confidence=confidence),
+        replace(truth, subjects=padded(truth.subjects, -1), x_clean=padded(truth.x_clean, np.nan),
+                outliers=padded(truth.outliers, False), swaps=padded(truth.swaps, False)),
+    )
+
+
 def add_outliers(
     capture: Capture, truth: GroundTruth, fraction: float, *, low: float = 20.0,
     high: float = 100.0, seed: int = 0,

@@ -14,7 +14,14 @@ simulator's truth:
    error;
 3. outliers: 5 % of one person's observations moved 20-100 px; error with the default robust
    loss and without it, down-weighted observations (report.json) against the true outliers;
-4. swaps: 10 % of the left/right pairs swapped; true swaps listed in report.json's swaps_fixed.
+4. swaps: 10 % of the left/right pairs swapped; true swaps listed in report.json's swaps_fixed;
+5. crowd: three people 2 m apart under the detector model (``openpose``: noise, bias, outliers,
+   missing points), the third seen only in the middle 40 % of the time (enters late, leaves
+   early), and a false detection (another image's detection, moved 50-200 px) in 10 % of the
+   images; per person the subject that took most of its detections, purity (the share of its
+   detections that subject took), reconstructed (the share of its images where that subject has
+   at least half its points) and the mean 3D error over its images, and the share of false
+   detections left out.
 
     python pipelines/multi_person/pipeline.py [--data assets/mocap] [--out outputs/multi_person]
 """
@@ -28,7 +35,7 @@ import json
 import logging
 import time
 from collections import Counter
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +50,9 @@ from dloe_sfm.stages.reconstruct import main as reconstruct_workspace
 from dloe_sfm.synth import SimulationSettings, load_mocap, resolve_motion, simulate
 from dloe_sfm.synth.mocap import symmetric_pairs
 from dloe_sfm.synth.scenarios import (
+    add_false_detections,
     add_outliers,
+    limit_presence,
     simulate_events,
     simulate_people,
     swap_symmetric,
@@ -54,9 +63,13 @@ logger = logging.getLogger("dloe_sfm")
 
 REPO = Path(__file__).resolve().parents[2]
 PEOPLE = ("walking_1", "jumping_1")
+CROWD = ("walking_1", "jumping_1", "basketball_signal_1")
+PRESENT = (0.3, 0.7)
+"""The part of the duration the crowd case's third person is in view."""
+FALSE_DETECTIONS = 0.1
 EVENTS = ("walking_1", "jumping_1", "basketball_signal_1")
 SINGLE = "walking_1"
-CASES = ("people", "events", "outliers", "swaps")
+CASES = ("people", "events", "outliers", "swaps", "crowd")
 
 
 def cmu_layout(parents: np.ndarray) -> Layout:
@@ -162,6 +175,36 @@ def score_people(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[st
             "associated": float(associated(perm).mean()), "people": people}
 
 
+def score_crowd(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str, ...]) -> dict:
+    """Per person: its subject (the one that took most of its detections), purity,
+    reconstructed share of its images and mean 3D error over them; false detections (truth -1)
+    left out."""
+    truth = gt.subjects
+    found = out["detection_subject"]
+    found = np.pad(found[:, :truth.shape[1]],
+                   ((0, 0), (0, max(truth.shape[1] - found.shape[1], 0))), constant_values=-1)
+    people = []
+    for k, motion in enumerate(motions):
+        mine = truth == k
+        taken = found[mine]
+        subject = int(np.bincount(taken[taken >= 0]).argmax()) if (taken >= 0).any() else -1
+        images = np.flatnonzero(mine.any(axis=1))
+        columns = np.flatnonzero(out["subject_id"] == subject)
+        columns = columns[np.argsort(out["point_id"][columns])]
+        X = out["X"][images][:, columns]
+        people.append({
+            "motion": motion, "subject_id": subject, "images": int(images.size),
+            "purity": float((taken == subject).mean()),
+            "reconstructed": float((np.isfinite(X).all(axis=-1).mean(axis=-1) >= 0.5).mean())
+            if columns.size else 0.0,
+            "error_mm": mean_error_mm(X, gt.X[images, k]) if columns.size else None,
+        })
+    false = (truth == -1) & capture.visible.any(axis=2)
+    return {"images": capture.num_images, "subjects_found": int(out["report"]["subjects"]),
+            "people": people, "false_detections": int(false.sum()),
+            "false_left_out": float((found[false] < 0).mean()) if false.any() else 1.0}
+
+
 def score_events(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str, ...]) -> dict:
     """Event purity (images of an estimated event in its majority clip / all) and per-clip error."""
     truth, events = gt.events, out["events"]
@@ -221,6 +264,11 @@ def run_case(case: str, folder: Path, data: Path, settings: SimulationSettings,
     elif case == "events":
         seqs = [load_mocap(resolve_motion(data, m)) for m in EVENTS]
         capture, gt = simulate_events(seqs, settings, gap=2.0)
+    elif case == "crowd":
+        seqs = [load_mocap(resolve_motion(data, m)) for m in CROWD]
+        capture, gt = simulate_people(seqs, replace(settings, detector="openpose"), spacing=2.0)
+        capture, gt = limit_presence(capture, gt, 2, *(f * gt.t.max() for f in PRESENT))
+        capture, gt = add_false_detections(capture, gt, FALSE_DETECTIONS, seed=settings.seed + 3)
     else:
         capture, gt = simulate(load_mocap(resolve_motion(data, SINGLE)), settings)
     layout = cmu_layout(gt.parents)
@@ -235,6 +283,8 @@ def run_case(case: str, folder: Path, data: Path, settings: SimulationSettings,
         row = score_people(capture, gt, out, PEOPLE)
     elif case == "events":
         row = score_events(capture, gt, out, EVENTS)
+    elif case == "crowd":
+        row = score_crowd(capture, gt, out, CROWD)
     elif case == "outliers":
         plain = run_stage(folder, capture, name="reconstruction_no_robust",
                           overrides=[*overrides, "robust_loss=none"])
@@ -258,6 +308,13 @@ def describe(row: dict) -> str:
         body = (f"{row['error_mm']:.2f} mm (no robust loss {row['error_no_robust_mm']:.2f}); "
                 f"down-weighted {row['downweighted']} of {row['outliers']} outliers: recall "
                 f"{row['recall']:.3f}, precision {row['precision']:.3f}")
+    elif row["case"] == "crowd":
+        people = ", ".join(
+            f"{p['motion']} {p['error_mm']:.2f} mm, purity {p['purity']:.3f}, "
+            f"{100 * p['reconstructed']:.1f} % of {p['images']}" for p in row["people"])
+        body = (f"{row['subjects_found']} subjects; {people}; "
+                f"{100 * row['false_left_out']:.1f} % of {row['false_detections']} false "
+                "detections left out")
     else:
         body = (f"{100 * row['found']:.1f} % of {row['swapped']} swaps fixed, "
                 f"{row['false_swaps']} false; {row['error_mm']:.2f} mm")
@@ -288,7 +345,9 @@ def main(out_dir: Path, *, data: Path | None = None, cases: tuple[str, ...] = CA
                     "settings": {**asdict(settings), "people": PEOPLE, "spacing_m": 2.0,
                                  "events": EVENTS, "gap_s": 2.0, "single": SINGLE,
                                  "outlier_fraction": 0.05, "outlier_px": [20.0, 100.0],
-                                 "swap_fraction": 0.1, "solver_overrides": overrides},
+                                 "swap_fraction": 0.1, "crowd": CROWD, "crowd_present": PRESENT,
+                    "false_detections": FALSE_DETECTIONS, "crowd_detector": "openpose",
+                    "solver_overrides": overrides},
                     "cases": rows}
         (tmp / "results.json").write_text(json.dumps(document, indent=2))
     return document
