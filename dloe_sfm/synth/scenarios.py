@@ -142,8 +142,10 @@ def add_false_detections(
     reflection or a misplaced skeleton that supports nobody. Its truth ``subjects`` is -1 and
     its ``x_clean`` NaN."""
     rng = np.random.default_rng(seed)
-    n, m = capture.x.shape[:2]
+    n = capture.num_images
     held = np.argwhere(np.isfinite(capture.x).all(axis=-1).any(axis=-1))  # (image, slot)
+    if np.unique(held[:, 0]).size < 2:
+        raise ValueError("false detections are copied from other images: two need detections")
     hit = np.flatnonzero(rng.random(n) < fraction)
     source = held[rng.integers(0, len(held), hit.size)]
     while (same := source[:, 0] == hit).any():  # another image's, never the image's own
