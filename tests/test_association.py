@@ -165,7 +165,8 @@ def test_false_detections_that_fit_no_motion_make_no_subject(assets_dir) -> None
 def test_a_robust_round_resumed_from_another_association_fits_its_own(assets_dir) -> None:
     """The association's later rounds under detector noise (``finish_single``'s ``resumed``):
     the solve of an association with 3 images' people exchanged weights the robust round of
-    the right one, which re-solves it about as well as a solve of its own."""
+    the right one, which re-solves it about as well as a solve of its own; with no round to
+    run, the capture is solved on its own."""
     seqs = [load_mocap(assets_dir / "mocap" / f"{m}.npz") for m in ("walking_1", "jumping_1")]
     options = Options(stream_clocks="off", robust_iterations=1)
     cap, sim = simulate_people(seqs, replace(QUICK, detector="openpose"), shuffle=False)
@@ -183,6 +184,10 @@ def test_a_robust_round_resumed_from_another_association_fits_its_own(assets_dir
     assert error_mm(start.X) > 3 * error_mm(own.X)
     assert error_mm(resumed.X) <= 1.2 * error_mm(own.X)
     assert resumed.nit > start.nit  # its sweeps count the start's
+    # no round to resume (none asked): the capture is solved on its own, not left at the start
+    unrounded = finish_single(merged, options.replace(robust_iterations=0), start, one_event,
+                              resumed=True)
+    assert error_mm(unrounded.X) <= 1.2 * error_mm(own.X)
 
 
 @pytest.mark.shared

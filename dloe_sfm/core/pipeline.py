@@ -109,9 +109,6 @@ def finish_single(
     association changed in a few of them, ``multitarget.reconstruct_subjects``): its prediction
     weights the first robust round, which re-solves ``capture`` whatever it rejects."""
     started, before = time.perf_counter(), result.seconds
-    if resumed:
-        result = replace(result, swaps=np.zeros((0, 3), dtype=np.int64), solved=None,
-                         outliers=np.zeros((0, 2), dtype=np.int64))
     result, solved = robust_rounds(capture, options, labels, result, progress, resumed=resumed)
     auto_noise = options.noise_px == AUTO
     if auto_noise:
@@ -375,7 +372,9 @@ def robust_rounds(
 
     ``resumed``: ``result`` is the robust solve of other observations of these images
     (:func:`finish_single`), so the first round re-solves whatever it rejects, and is never
-    undone: a robust solution's fit is no plain solve's to compare with."""
+    undone: a robust solution's fit is no plain solve's to compare with; where no round runs
+    (``robust_iterations`` 0, a loss scale that would drop most of the data) the capture is
+    solved on its own."""
     robust = options.robust_loss is not RobustLoss.NONE
     pairs = capture.symmetric_pairs if options.fix_swaps else None
     if not reweighs(capture, options):
@@ -433,6 +432,10 @@ def robust_rounds(
             nit=again.nit + result.nit,
             timings={k: v + result.timings.get(k, 0.0) for k, v in again.timings.items()},
         )
+    if resumed and result is plain:
+        # no round re-solved: ``plain`` is a solve of other observations, this capture needs its own
+        logger.info("robust rounds not resumed: the capture solved on its own")
+        result = solve_events(capture, options, labels, None, progress)
     img, col = np.nonzero(rejected)
     return replace(
         result,
