@@ -364,7 +364,12 @@ def reconstruct_subjects(
     p = capture.num_points
     logger.info("%d subject(s) in %d images (%d detections unassigned)", s,
                 capture.num_images, int(((assignment < 0) & capture.visible.any(axis=2)).sum()))
-    merged = aggregate(capture, assignment).validate("aggregated subjects")
+
+    def aggregated(assignment: np.ndarray) -> Capture:
+        """The capture aggregated by ``assignment`` (step 4), checked for the solve."""
+        return aggregate(capture, assignment).validate("aggregated subjects")
+
+    merged = aggregated(assignment)
     result, labels = plain_solve(merged, options, progress, s)
     # under detector noise the robust rounds re-solve once, from a solution's prediction: the
     # association is checked against the plain solve already, and a later round re-solves
@@ -375,20 +380,20 @@ def reconstruct_subjects(
         assignment, changed = checked_again(capture, assignment, result)
         checks -= 1
         if changed:
-            merged = aggregate(capture, assignment).validate("aggregated subjects")
+            merged = aggregated(assignment)
     result = finish_single(merged, options, result, labels, progress, resumed=changed)
     for _ in range(checks):
         assignment, changed = checked_again(capture, assignment, result)
         if not changed:
             break
-        merged = aggregate(capture, assignment).validate("aggregated subjects")
+        merged = aggregated(assignment)
         result = (finish_single(merged, options, result, labels, progress, resumed=True)
                   if resume else solve_single(merged, options, progress, s))
     unfit = unfit_subjects(capture, assignment, result)
     if unfit.size:  # solved from the start: the robust rounds weight the others afresh
         assignment = without_subjects(assignment, unfit)
         s = int(assignment.max()) + 1
-        merged = aggregate(capture, assignment).validate("aggregated subjects")
+        merged = aggregated(assignment)
         result = solve_single(merged, options, progress, s)
     return replace(
         result,
