@@ -151,12 +151,24 @@ def mean_error_mm(X: np.ndarray, X_true: np.ndarray) -> float:
     return float(np.nanmean(np.linalg.norm(X - X_true, axis=-1)) * 1000)
 
 
+def found_subjects(out: dict, truth: np.ndarray) -> np.ndarray:
+    """(N, M) the stage's subject of every detection slot of ``truth`` (N, M) (-1: none; the
+    files hold at most M)."""
+    found = out["detection_subject"][:, :truth.shape[1]]
+    return np.pad(found, ((0, 0), (0, truth.shape[1] - found.shape[1])), constant_values=-1)
+
+
+def subject_columns(out: dict, subject: int) -> np.ndarray:
+    """The exported columns of ``subject``, in point order."""
+    columns = np.flatnonzero(out["subject_id"] == subject)
+    return columns[np.argsort(out["point_id"][columns])]
+
+
 def score_people(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str, ...]) -> dict:
     """Association (best global permutation of subject ids) and every person's error."""
     truth, X_true = gt.subjects, gt.X
-    found = out["detection_subject"]
+    found = found_subjects(out, truth)
     m = truth.shape[1]
-    found = np.pad(found[:, :m], ((0, 0), (0, max(m - found.shape[1], 0))), constant_values=-1)
     num = max(m, int(found.max()) + 1)
 
     def associated(perm: tuple[int, ...]) -> np.ndarray:
@@ -167,8 +179,7 @@ def score_people(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[st
     people = []
     for k, motion in enumerate(motions):
         subject = perm.index(k)
-        columns = np.flatnonzero(out["subject_id"] == subject)
-        columns = columns[np.argsort(out["point_id"][columns])]
+        columns = subject_columns(out, subject)
         error = mean_error_mm(out["X"][:, columns], X_true[:, k]) if columns.size else None
         people.append({"motion": motion, "subject_id": subject, "error_mm": error})
     return {"images": capture.num_images, "subjects_found": int(out["report"]["subjects"]),
@@ -180,17 +191,14 @@ def score_crowd(capture: Capture, gt: GroundTruth, out: dict, motions: tuple[str
     reconstructed share of its images and mean 3D error over them; false detections (truth -1)
     left out."""
     truth = gt.subjects
-    found = out["detection_subject"]
-    found = np.pad(found[:, :truth.shape[1]],
-                   ((0, 0), (0, max(truth.shape[1] - found.shape[1], 0))), constant_values=-1)
+    found = found_subjects(out, truth)
     people = []
     for k, motion in enumerate(motions):
         mine = truth == k
         taken = found[mine]
         subject = int(np.bincount(taken[taken >= 0]).argmax()) if (taken >= 0).any() else -1
         images = np.flatnonzero(mine.any(axis=1))
-        columns = np.flatnonzero(out["subject_id"] == subject)
-        columns = columns[np.argsort(out["point_id"][columns])]
+        columns = subject_columns(out, subject)
         X = out["X"][images][:, columns]
         people.append({
             "motion": motion, "subject_id": subject, "images": int(images.size),
