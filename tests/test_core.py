@@ -635,6 +635,28 @@ def test_hard_x_step_in_groups_of_points_matches_one_group(rng, monkeypatch):
 
 
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])
+def test_x_step_factors_on_one_blas_thread(rng, monkeypatch, lambda2):
+    """The X-step's banded Cholesky runs with every BLAS library on one thread (OpenBLAS's
+    threads wait for each small block), and the caller's thread count is back afterwards."""
+    cap, truth = small_capture(rng, n_per_stream=20, p=4)
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    threads = []
+    factor = xstep._banded_cholesky
+
+    def counted(band, rhs):
+        threads.extend(lib["num_threads"] for lib in xstep.BLAS.info())
+        return factor(band, rhs)
+
+    monkeypatch.setattr(xstep, "_banded_cholesky", counted)
+    before = [lib["num_threads"] for lib in xstep.BLAS.info()]
+    with xstep.BLAS.limit(limits=2, user_api="blas"):
+        x_step(prob.chain, np.ones(cap.num_images), prob, lambda1=0.05, lambda2=lambda2,
+               X_prev=truth.X)
+    assert threads and set(threads) == {1}
+    assert [lib["num_threads"] for lib in xstep.BLAS.info()] == before
+
+
+@pytest.mark.parametrize("lambda2", [np.inf, 0.5])
 @pytest.mark.parametrize("graph", ["chain", "long edges", "long edges, small", "indefinite"])
 def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, graph):
     """A chain-like graph is solved as a band; one with long edges (a wide band) by SuperLU,

@@ -9,8 +9,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg import cho_solve_banded, cholesky_banded
 from scipy.sparse.csgraph import reverse_cuthill_mckee
+from threadpoolctl import ThreadpoolController
 
 from .steps import Problem, smoothness_matrix
+
+BLAS = ThreadpoolController()
+"""The BLAS libraries numpy and scipy loaded: the X-step's factorisations run on one thread of
+theirs (:func:`x_step`)."""
 
 BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
@@ -24,6 +29,7 @@ BATCH = 2**20
 all of them (:func:`_hard_points`: one factorisation per group, memory bounded at any size)."""
 
 
+@BLAS.wrap(limits=1, user_api="blas")
 def x_step(
     W: sp.csr_matrix,
     D: np.ndarray,
@@ -49,6 +55,10 @@ def x_step(
     dense matrix) unless its work is small (:func:`_band_pays`), or a system the banded
     Cholesky finds not numerically positive definite, goes to SuperLU instead
     (:func:`_superlu`).
+
+    The BLAS runs on one thread here: the banded Cholesky's blocks are too small to share, and
+    OpenBLAS's threads, which wait for each block, took 15 times as long as one thread when
+    another process kept a core busy (docs/method.md, "Speed").
     """
     n, p = prob.rays.shape[:2]
     Q = smoothness_matrix(W, D, lambda1)
