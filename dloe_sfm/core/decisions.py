@@ -56,13 +56,13 @@ SUBJECT_VIEWS = 3
 """Fewest streams that must see a subject (all the capture's, when it has fewer): with two, no
 view checks what the other two triangulate (a still bystander at the edge of two cameras' views,
 a reflection)."""
-SUBJECT_CONFIDENCE = 0.5
-"""Lowest median confidence of a subject's detections (``multitarget.detection_confidence``:
-how much nearer they lie to its own graph prediction than to another subject's) for it to be a
+SUBJECT_MISFIT = 10.0
+"""Most times farther than the detections of all subjects (median) a subject's detections may
+be predicted when each is held out (``heldout.held_out_subjects``, median) for it to be a
 person: false detections (reflections, misplaced skeletons) that a subject gathers from
-scattered instants and cameras fit no motion, their own subject's no better than another's
-(0.16 on the simulated crowd case, 0.93-0.98 for Shelf's four people; but 0.86 on its held-out
-seed, whose false subject stays: docs/method.md, "Several people")."""
+scattered instants and cameras follow no motion, and held out they are predicted hundreds of
+pixels off (25-199 times the median on the simulated crowd case and the exact and detector-model
+tests; people 0.7-3.6 times, Shelf's four 0.8-1.6: docs/method.md, "Several people")."""
 SOFT_MARGIN = 0.95
 """Soft rays are taken when their median held-out residual is below this fraction of hard
 rays' (a tie keeps the detections exact)."""

@@ -8,20 +8,23 @@ detections are exact (the image's other points fix when it was taken); whole ima
 (:func:`image_folds`) ask when each image was taken, and along the stream clocks they also see
 the depth errors that hard rays keep from noisy detections, which single held-out detections
 cannot. A check solves at most :data:`CHECK_IMAGES` images in the middle of the time line
-(:func:`middle_window`).
+(:func:`middle_window`). Each subject's detections held out whole (:func:`held_out_subjects`) ask
+whether a subject follows a motion at all.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
 
-from .alternation import Phase, Search, alternate, sequence
+from .alternation import Phase, Search, alternate, sequence, soft_ray_weight
 from .capture import Capture
 from .clocks import time_chain
 from .options import Options
 from .problem import normalise
+from .result import Result
 from .robust import residuals_px
 from .sequencing import stream_members
 from .xstep import x_step
@@ -125,3 +128,36 @@ def held_out_px(
         alternate(sk, pk, capture.frame, options, Phase(lambda2, FOLD_SWEEPS))
         out[held] = residuals_px(capture, norm.to_world(sk.best.X))[held]
     return out[fold >= 0]
+
+
+def held_out_subjects(
+    capture: Capture, subjects: int, result: Result, options: Options, folds: int = FOLDS
+) -> np.ndarray:
+    """(N, S) median pixel residual of each subject's detection in each image, predicted by
+    ``result``'s graph without it (NaN where the image does not see the subject).
+
+    ``capture``: the aggregated capture ``result`` solved (columns s P .. s P + P - 1 are
+    subject s). The (image, subject) pairs fall in ``folds`` folds (fixed seed); each fold's
+    detections are held out whole and the rest solved by one X-step on the solution's W and D,
+    at the ray weight of the noise it found. A person's detection is predicted about as well as
+    the graph predicts any other (its neighbours in time see the same motion); a detection that
+    only fits because its own rays pull its neighbours' points is predicted far off."""
+    n, p = capture.num_images, capture.num_points // subjects
+    options = options.replace(noise_px=result.noise_px)
+    norm = normalise(capture, options, result.X)
+    prob = norm.problem
+    X = norm.to_normal(result.X)
+    fold = np.random.default_rng(0).integers(0, folds, (n, subjects))
+    out = np.full((n, subjects), np.nan)
+    for k in range(folds):
+        held = np.repeat(fold == k, p, axis=1) & prob.visible
+        pk = replace(prob, weights=np.where(held, 0.0, prob.weights),
+                     rays=np.where(held[..., None], np.nan, prob.rays))
+        Xk = x_step(result.W, result.D, pk, lambda1=options.lambda1,
+                    lambda2=soft_ray_weight(capture, options), X_prev=X)
+        res = np.where(held, residuals_px(capture, norm.to_world(Xk)), np.nan)
+        seen = held.reshape(n, subjects, p).any(axis=2)
+        with warnings.catch_warnings():  # all-NaN rows: points behind the camera
+            warnings.simplefilter("ignore", RuntimeWarning)
+            out[seen] = np.nanmedian(res.reshape(n, subjects, p)[seen], axis=1)
+    return out

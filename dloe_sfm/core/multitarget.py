@@ -26,8 +26,9 @@ from scipy.sparse.csgraph import connected_components
 
 from .alternation import Progress
 from .capture import Capture, project
-from .decisions import SUBJECT_CONFIDENCE, subject_count, subject_support
+from .decisions import SUBJECT_MISFIT, subject_count, subject_support
 from .events import stream_runs, symmetrised
+from .heldout import held_out_subjects
 from .options import Options
 from .pipeline import finish_single, plain_solve, reweighs, shape_space_graph, solve_single
 from .problem import initialise
@@ -308,24 +309,30 @@ def checked_again(capture: Capture, assignment: np.ndarray, result: Result
     return new, changed > 0
 
 
-def unfit_subjects(capture: Capture, assignment: np.ndarray, result: Result) -> np.ndarray:
-    """The subjects of ``result`` that are no person (``decisions.SUBJECT_CONFIDENCE``: their
-    detections' median ``detection_confidence`` is below it), unless leaving their detections
-    out would leave an image with none, or no subject; each is logged."""
+def unfit_subjects(merged: Capture, assignment: np.ndarray, result: Result,
+                   options: Options) -> np.ndarray:
+    """The subjects of ``result`` (solved on ``merged``, the capture aggregated by
+    ``assignment``) that are no person: their detections, each held out, are predicted
+    (``heldout.held_out_subjects``, median) more than ``decisions.SUBJECT_MISFIT`` times farther
+    than all subjects' detections (median); unless leaving their detections out would leave an
+    image with none, or no subject. Each is logged."""
     s = int(assignment.max()) + 1
     if s < 2:
         return np.zeros(0, dtype=np.int64)
-    sure = detection_confidence(capture, assignment, result)
-    median = np.array([np.median(sure[assignment == k]) for k in range(s)])
-    unfit = np.flatnonzero(median < SUBJECT_CONFIDENCE)
+    held = held_out_subjects(merged, s, result, options)
+    typical = float(np.nanmedian(held))
+    with warnings.catch_warnings():  # a subject none of whose points is in front of a camera
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(held, axis=0)
+    unfit = np.flatnonzero(median > SUBJECT_MISFIT * typical)
     others = (assignment >= 0) & ~np.isin(assignment, unfit)
     if unfit.size == s or not others.any(axis=1)[(assignment >= 0).any(axis=1)].all():
         return np.zeros(0, dtype=np.int64)
     for k in unfit:
-        logger.warning("%d detection(s) in %d image(s) fit no motion (median confidence %.2f, "
-                       "a person's needs %.2f): left out",
+        logger.warning("%d detection(s) in %d image(s) follow no motion (held out, predicted "
+                       "%.0f px off, median; all detections %.1f px): left out",
                        int((assignment == k).sum()), int((assignment == k).any(axis=1).sum()),
-                       median[k], SUBJECT_CONFIDENCE)
+                       median[k], typical)
     return unfit
 
 
@@ -349,14 +356,15 @@ def reconstruct_subjects(
     """All five steps: a :class:`Result` over the S P columns of the aggregated capture, with
     ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
 
-    The association is then checked against the solution (``reassociate``) and, where it
-    changed, aggregated and solved again, at most ``rounds`` associations in all. Under
-    detector noise (the plain solve found some, and the robust rounds run) the first check is
-    against the plain solve, before its robust round, and each new association is solved by
-    the robust round resumed from the last solution (``pipeline.finish_single``), since a few
-    images changed: one solve per association after the first instead of two. A subject whose
-    detections fit no motion in the last solution (:func:`unfit_subjects`) is then dropped, its
-    detections left out, and the capture solved again from the start without it.
+    A subject whose detections follow no motion (:func:`unfit_subjects`: held out, the first
+    solve predicts them far off) is dropped, its detections left out, and the capture solved
+    again without it before anything else. The association is then checked against the
+    solution (``reassociate``) and, where it changed, aggregated and solved again, at most
+    ``rounds`` associations in all. Under detector noise (the plain solve found some, and the
+    robust rounds run) the first check is against the plain solve, before its robust round,
+    and each new association is solved by the robust round resumed from the last solution
+    (``pipeline.finish_single``), since a few images changed: one solve per association after
+    the first instead of two.
     """
     started = time.perf_counter()
     assignment = associate(capture, options)
@@ -371,6 +379,12 @@ def reconstruct_subjects(
 
     merged = aggregated(assignment)
     result, labels = plain_solve(merged, options, progress, s)
+    unfit = unfit_subjects(merged, assignment, result, options)
+    if unfit.size:  # before any round: the people's are weighted and checked on their own
+        assignment = without_subjects(assignment, unfit)
+        s = int(assignment.max()) + 1
+        merged = aggregated(assignment)
+        result, labels = plain_solve(merged, options, progress, s)
     # under detector noise the robust rounds re-solve once, from a solution's prediction: the
     # association is checked against the plain solve already, and a later round re-solves
     # from the last solution (finish_single's resumed) rather than from the start
@@ -389,12 +403,6 @@ def reconstruct_subjects(
         merged = aggregated(assignment)
         result = (finish_single(merged, options, result, labels, progress, resumed=True)
                   if resume else solve_single(merged, options, progress, s))
-    unfit = unfit_subjects(capture, assignment, result)
-    if unfit.size:  # solved from the start: the robust rounds weight the others afresh
-        assignment = without_subjects(assignment, unfit)
-        s = int(assignment.max()) + 1
-        merged = aggregated(assignment)
-        result = solve_single(merged, options, progress, s)
     return replace(
         result,
         seconds=time.perf_counter() - started,
