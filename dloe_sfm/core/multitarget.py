@@ -356,15 +356,16 @@ def reconstruct_subjects(
     """All five steps: a :class:`Result` over the S P columns of the aggregated capture, with
     ``subject_id``, ``point_id``, ``assignment`` and ``solved`` (the aggregated capture).
 
-    A subject whose detections follow no motion (:func:`unfit_subjects`: held out, the first
-    solve predicts them far off) is dropped, its detections left out, and the capture solved
-    again without it before anything else. The association is then checked against the
-    solution (``reassociate``) and, where it changed, aggregated and solved again, at most
-    ``rounds`` associations in all. Under detector noise (the plain solve found some, and the
-    robust rounds run) the first check is against the plain solve, before its robust round,
-    and each new association is solved by the robust round resumed from the last solution
-    (``pipeline.finish_single``), since a few images changed: one solve per association after
-    the first instead of two.
+    The association is checked against the solution (``reassociate``) and, where it changed,
+    aggregated and solved again, at most ``rounds`` associations in all. Under detector noise
+    (the plain solve found some, and the robust rounds run) the first check is against the
+    plain solve, before its robust round, and each new association is solved by the robust
+    round resumed from the last solution (``pipeline.finish_single``), since a few images
+    changed: one solve per association after the first instead of two. A subject whose
+    detections follow no motion (:func:`unfit_subjects`: held out, the last solution predicts
+    them far off) is then dropped, its detections left out, and the capture solved again from
+    the start without it. It is checked last: through the rounds the false detections that
+    people's subjects took move to it, and leave with it.
     """
     started = time.perf_counter()
     assignment = associate(capture, options)
@@ -379,12 +380,6 @@ def reconstruct_subjects(
 
     merged = aggregated(assignment)
     result, labels = plain_solve(merged, options, progress, s)
-    unfit = unfit_subjects(merged, assignment, result, options)
-    if unfit.size:  # before any round: the people's are weighted and checked on their own
-        assignment = without_subjects(assignment, unfit)
-        s = int(assignment.max()) + 1
-        merged = aggregated(assignment)
-        result, labels = plain_solve(merged, options, progress, s)
     # under detector noise the robust rounds re-solve once, from a solution's prediction: the
     # association is checked against the plain solve already, and a later round re-solves
     # from the last solution (finish_single's resumed) rather than from the start
@@ -403,6 +398,12 @@ def reconstruct_subjects(
         merged = aggregated(assignment)
         result = (finish_single(merged, options, result, labels, progress, resumed=True)
                   if resume else solve_single(merged, options, progress, s))
+    unfit = unfit_subjects(merged, assignment, result, options)
+    if unfit.size:  # solved from the start: the robust rounds weight the others afresh
+        assignment = without_subjects(assignment, unfit)
+        s = int(assignment.max()) + 1
+        merged = aggregated(assignment)
+        result = solve_single(merged, options, progress, s)
     return replace(
         result,
         seconds=time.perf_counter() - started,
