@@ -170,6 +170,28 @@ def test_a_late_person_and_false_detections_keep_their_truth(jumping, assets_dir
         assert 50 <= np.linalg.norm(np.nanmean(d[src], axis=0)) <= 200
 
 
+def test_a_walker_turned_back_crosses_the_other(assets_dir):
+    """``simulate_people``'s ``turns``: a person's motion turned about the vertical through its
+    centre, rigidly (every bone length kept); a walk turned by pi comes back the other way, so
+    two walkers 0.6 m apart pass each other, their centres within 0.7 m mid-way."""
+    walking = load_mocap(assets_dir / "mocap" / "walking_1.npz")
+    settings = SimulationSettings(duration=3.0)
+    _, straight = simulate_people([walking, walking], settings, spacing=0.6, shuffle=False)
+    _, crossed = simulate_people([walking, walking], settings, spacing=0.6, shuffle=False,
+                                 turns=(0.0, np.pi))
+    np.testing.assert_allclose(crossed.X[:, 0], straight.X[:, 0])
+    bones = [np.linalg.norm(t.X[:, 1, 1:] - t.X[:, 1, t.parents[1:]], axis=-1)
+             for t in (straight, crossed)]
+    np.testing.assert_allclose(bones[1], bones[0], atol=1e-12)
+    centres = crossed.X.mean(axis=2)  # (N, 2, 3)
+    along = np.diff(centres[[0, -1]], axis=0)[0, :, 2]  # each walker's way along z
+    assert along[0] > 2.0 and along[1] < -2.0
+    gap = np.linalg.norm(centres[:, 0] - centres[:, 1], axis=-1)
+    assert gap.min() < 0.7 and gap.max() > 2.5
+    with pytest.raises(InputError, match="turns"):
+        simulate_people([walking, walking], settings, turns=(0.0,))
+
+
 def test_cli_refuses_swaps_with_the_detector(assets_dir, tmp_path):
     with pytest.raises(InputError, match="--detector"):
         simulate_stage.main(assets_dir / "mocap" / "jumping_1.npz", tmp_path / "c.npz",

@@ -34,6 +34,14 @@ def _centred(pos: np.ndarray, at: np.ndarray) -> np.ndarray:
     return pos + shift
 
 
+def _turned(pos: np.ndarray, angle: float) -> np.ndarray:
+    """``pos`` (T, J, 3) turned by ``angle`` radians about the vertical (y) through its mean."""
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    centre = pos.reshape(-1, 3).mean(axis=0)
+    return (pos - centre) @ rot.T + centre
+
+
 def _same_rate(seqs: list[MocapSequence]) -> float:
     fps = {s.fps for s in seqs}
     joints = {s.positions.shape[1] for s in seqs}
@@ -78,8 +86,11 @@ def simulate_people(
     *,
     spacing: float = 2.0,
     shuffle: bool = True,
+    turns: tuple[float, ...] | None = None,
 ) -> Simulated:
     """One person per sequence, side by side ``spacing`` metres apart along x, in every image.
+    ``turns``: each person's motion first turned by this many radians about the vertical through
+    its centre (pi: a walk along z comes back the other way, so two walkers cross).
 
     Returns a several-subject capture: ``x`` (N, S, P, 2) with the detections of every image in a
     random order (``shuffle``; confidence and the detector's outliers / swaps follow the slots).
@@ -90,6 +101,10 @@ def simulate_people(
     rng = np.random.default_rng(s.seed)
     fps = _same_rate(seqs)
     clips = [_window(q, s) for q in seqs]
+    if turns is not None:
+        if len(turns) != len(seqs):
+            raise InputError(f"{len(turns)} turns for {len(seqs)} people")
+        clips = [_turned(c, a) for c, a in zip(clips, turns, strict=True)]
     length = min(c.shape[0] for c in clips)
     offsets = (np.arange(len(seqs)) - (len(seqs) - 1) / 2) * spacing
     clips = [
