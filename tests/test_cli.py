@@ -50,6 +50,16 @@ def test_simulate_writes_the_protocol(capture_file):
         assert np.allclose(np.diff(ts), 1 / 30) and np.isclose(ts[0] * 120, s)
 
 
+def test_simulate_takes_lone_photos_and_bursts_as_counts(assets_dir, tmp_path):
+    """``--lone-photos`` and ``--bursts`` are counts on the command line, as in the settings."""
+    out = tmp_path / "crowd.npz"
+    r = dloe("simulate", assets_dir / "mocap" / "jumping_1.npz", "--out", out, "--duration",
+             "1.0", "--num-streams", "1", "--lone-photos", "12", "--bursts", "2")
+    assert r.returncode == 0, r.stderr
+    cap = load_capture(out)
+    assert (cap.stream == -1).sum() == 12 and np.unique(cap.stream[cap.stream >= 0]).size == 3
+
+
 def test_solve_then_evaluate(capture_file, tmp_path):
     out = tmp_path / "result.npz"
     r = dloe("solve", capture_file, "--out", out, "--set", "embedding=shp")

@@ -110,7 +110,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     defaults = SimulationSettings()
     for f in fields(SimulationSettings):
         value = getattr(defaults, f.name)
-        kind = int if f.name in ("num_streams", "image_size", "seed") else float
+        kind = int if f.type == "int" else float  # every count: --lone-photos, --bursts too
         parser.add_argument(
             f"--{f.name.replace('_', '-')}",
             dest=f.name,
