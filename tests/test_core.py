@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from scipy.optimize import minimize
 from scipy.sparse.csgraph import connected_components
 
-from dloe_sfm.core import init, xstep
+from dloe_sfm.core import init, solver, xstep
 from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.embedding import (
     BACKBONE_NEIGHBOURS,
@@ -637,7 +637,8 @@ def test_hard_x_step_in_groups_of_points_matches_one_group(rng, monkeypatch):
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])
 def test_x_step_factors_on_one_blas_thread(rng, monkeypatch, lambda2):
     """The X-step's banded Cholesky runs with every BLAS library on one thread (OpenBLAS's
-    threads wait for each small block), and the caller's thread count is back afterwards."""
+    threads wait for each small block), called on its own or by the whole solve, and the
+    caller's thread count is back afterwards."""
     cap, truth = small_capture(rng, n_per_stream=20, p=4)
     prob = build_problem(cap, Options(), np.zeros(3), 1.0)
     threads = []
@@ -654,6 +655,15 @@ def test_x_step_factors_on_one_blas_thread(rng, monkeypatch, lambda2):
                X_prev=truth.X)
     assert threads and set(threads) == {1}
     assert [lib["num_threads"] for lib in xstep.BLAS.info()] == before
+    if np.isinf(lambda2):  # the whole solve: its other BLAS calls too
+        seen = []
+        monkeypatch.setattr(solver, "assess", lambda capture, result, **kw: seen.extend(
+            lib["num_threads"] for lib in xstep.BLAS.info()) or result)
+        with xstep.BLAS.limit(limits=2, user_api="blas"):
+            reconstruct(cap, Options(max_iterations=2, soft_iterations=0, robust_loss="none",
+                                     stream_clocks="off"))
+        assert seen and set(seen) == {1}
+        assert [lib["num_threads"] for lib in xstep.BLAS.info()] == before
 
 
 @pytest.mark.parametrize("lambda2", [np.inf, 0.5])

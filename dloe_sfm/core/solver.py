@@ -18,8 +18,10 @@ from .options import Options
 from .pipeline import solve_single
 from .result import Result
 from .windows import solve_windowed
+from .xstep import BLAS
 
 
+@BLAS.wrap(limits=1, user_api="blas")
 def reconstruct(
     capture: Capture, options: Options | None = None, *, progress: Progress | None = None
 ) -> Result:
@@ -28,7 +30,10 @@ def reconstruct(
     ``capture`` must be valid (``Capture.validate``). Returns a new :class:`Result` in world
     units, every image checked and its reconstructability measured (:func:`.assess.assess`).
     ``progress(done, total, info)`` is called after every sweep of every solve (see
-    :data:`dloe_sfm.core.alternation.Progress`).
+    :data:`dloe_sfm.core.alternation.Progress`). The BLAS runs on one thread throughout, as in
+    the event workers (``core.parallel``): its threads share blocks too small to gain from
+    them, and wait for one another when another process keeps a core busy (docs/method.md,
+    "Speed").
     """
     options = options or Options()
     size = options.window_size(capture.num_images)

@@ -14,8 +14,9 @@ from threadpoolctl import ThreadpoolController
 from .steps import Problem, smoothness_matrix
 
 BLAS = ThreadpoolController()
-"""The BLAS libraries numpy and scipy loaded: the X-step's factorisations run on one thread of
-theirs (:func:`x_step`)."""
+"""The BLAS libraries numpy and scipy loaded (made here, after ``scipy.linalg`` loaded its own):
+the X-step's factorisations (:func:`x_step`) and the whole solve (``solver.reconstruct``) run
+on one thread of theirs."""
 
 BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
