@@ -147,14 +147,14 @@ def held_out_subjects(
     norm = normalise(capture, options, result.X)
     prob = norm.problem
     X = norm.to_normal(result.X)
+    lambda2 = soft_ray_weight(capture, options)
     fold = np.random.default_rng(0).integers(0, folds, (n, subjects))
     out = np.full((n, subjects), np.nan)
     for k in range(folds):
         held = np.repeat(fold == k, p, axis=1) & prob.visible
         pk = replace(prob, weights=np.where(held, 0.0, prob.weights),
                      rays=np.where(held[..., None], np.nan, prob.rays))
-        Xk = x_step(result.W, result.D, pk, lambda1=options.lambda1,
-                    lambda2=soft_ray_weight(capture, options), X_prev=X)
+        Xk = x_step(result.W, result.D, pk, lambda1=options.lambda1, lambda2=lambda2, X_prev=X)
         res = np.where(held, residuals_px(capture, norm.to_world(Xk)), np.nan)
         seen = held.reshape(n, subjects, p).any(axis=2)
         with warnings.catch_warnings():  # all-NaN rows: points behind the camera
