@@ -222,7 +222,7 @@ def run_jobs(job: Callable[[dict], list[dict]], specs: list[dict], jobs: int, de
 
     With ``fresh`` every spec gets a new process of its own, one at a time, so its peak memory is
     its own; that process is not a pool's daemon, so a solve in it may start worker processes
-    of its own (``core.parallel``: events from ``MIN_PARALLEL_IMAGES`` images).
+    of its own (``core.parallel``: events from ``MIN_PARALLEL_SLOTS`` (image, point) slots).
     """
     records: list[dict] = []
     spawn = mp.get_context("spawn")

@@ -18,9 +18,10 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-MIN_PARALLEL_IMAGES = 1000
-"""With ``workers`` = auto, events are solved in parallel from this many images (a spawned
-worker takes about a second to start)."""
+MIN_PARALLEL_SLOTS = 25_000
+"""With ``workers`` = auto, events are solved in parallel from this many (image, point) slots in
+all, 1000 images of 25 points (a spawned worker takes about a second to start; a solve's time
+grows with its images times its points: docs/method.md, "Speed")."""
 
 
 @contextmanager
@@ -38,14 +39,14 @@ def single_threaded_children() -> Iterator[None]:
                 os.environ[k] = v
 
 
-def worker_count(workers: int | str, tasks: int, num_images: int) -> int:
-    """Processes to use for ``tasks`` independent solves of ``num_images`` images in all: 1 (in
-    this process) for a single task; ``auto``: one per core, up to one per task, from
-    :data:`MIN_PARALLEL_IMAGES` images."""
+def worker_count(workers: int | str, tasks: int, slots: int) -> int:
+    """Processes to use for ``tasks`` independent solves of ``slots`` (image, point) slots in
+    all: 1 (in this process) for a single task; ``auto``: one per core, up to one per task, from
+    :data:`MIN_PARALLEL_SLOTS` slots."""
     if tasks < 2:
         return 1
     if workers == "auto":
-        return min(os.cpu_count() or 1, tasks) if num_images >= MIN_PARALLEL_IMAGES else 1
+        return min(os.cpu_count() or 1, tasks) if slots >= MIN_PARALLEL_SLOTS else 1
     return min(int(workers), tasks)
 
 

@@ -94,7 +94,7 @@ def solve_windowed(
                 size, overlap)
     tasks = [(capture.subset(idx), options) for idx in windows]
     if mapper is None:
-        workers = worker_count(options.workers, len(tasks), n)
+        workers = worker_count(options.workers, len(tasks), n * capture.num_points)
         mapper = ((lambda fn, items: map_in_processes(fn, items, workers)) if workers > 1
                   else map)
     results = list(mapper(_solve_window, tasks))
