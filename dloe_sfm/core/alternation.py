@@ -99,11 +99,14 @@ class Best:
 class Phase:
     """Up to ``budget`` sweeps at ray weight ``lambda2``; ``fit_px``: (callable, target) stops
     once the callable's median reprojection residual (pixels) of the best iterate is down to
-    the target (the discrepancy principle of the soft phase)."""
+    the target (the discrepancy principle of the soft phase); ``settled``: called with the best
+    iterate's W and X every ``resequence_every`` sweeps, stops the phase when it says so (the
+    hard phase: ``decisions.hard_rays_settled``)."""
 
     lambda2: float
     budget: int
     fit_px: tuple[Callable[[np.ndarray], float], float] | None = None
+    settled: Callable[[sp.csr_matrix, np.ndarray], str | None] | None = None
 
 
 @dataclass
@@ -201,6 +204,8 @@ def alternate(
                 f"converged: cost fell by < {options.cost_tolerance:.0e} in {window} sweeps",
             )
         if (it + 1) % window == 0:
+            if phase.settled is not None and (why := phase.settled(st.best.W, st.best.X)):
+                return True, why
             t0 = time.perf_counter()
             st.prior_f, st.f = sequence(st.X, prob, frames, options)
             st.timings["sequencing"] += time.perf_counter() - t0

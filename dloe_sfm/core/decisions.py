@@ -12,6 +12,7 @@ decision              function             evidence                      called 
 ====================  ===================  ============================  ========================
 how many people       subject_count        detections per image          multitarget.associate
 cluster is a person   subject_support      its images and streams        multitarget.associate
+hard phase done       hard_rays_settled    prediction px over sweeps     pipeline.solve_event
 soft or hard rays     soft_rays_kept       held-out px, obs. folds       pipeline.solve_event
 robust round kept     robust_round_undone  residual vs the plain solve   pipeline.robust_rounds
 image mispredicted    spare_mispredicted   share of it rejected          pipeline.robust_rounds
@@ -32,6 +33,7 @@ checks run call, so it stays below them in ``events.py``.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from enum import Enum
 
 import numpy as np
@@ -63,6 +65,17 @@ person: false detections (reflections, misplaced skeletons) that a subject gathe
 scattered instants and cameras follow no motion, and held out they are predicted hundreds of
 pixels off (25-199 times the median on the simulated crowd case and the exact and detector-model
 tests; people 0.7-3.6 times, Shelf's four 0.8-1.6: docs/method.md, "Several people")."""
+SETTLED_GAIN = 0.01
+"""The hard-ray phase stops once the graph's prediction of the detections (median residual)
+fell by less than this share over the last :data:`SETTLED_CHECKS` checks
+(:func:`hard_rays_settled`)."""
+SETTLED_CHECKS = 2
+"""Checks (one every ``Options.resequence_every`` sweeps) over which the prediction must still
+improve by :data:`SETTLED_GAIN` for the hard-ray phase to go on."""
+EXACT_PX = 0.5
+"""Median prediction residual (pixels) below which detections are taken as exact: there the
+hard-ray solve is the answer and runs to convergence (``Options.tolerance``,
+``Options.cost_tolerance``), however slowly its prediction still improves."""
 SOFT_MARGIN = 0.95
 """Soft rays are taken when their median held-out residual is below this fraction of hard
 rays' (a tie keeps the detections exact)."""
@@ -114,6 +127,33 @@ def subject_support(streams: int) -> tuple[int, int]:
     ``streams`` streams: :data:`SUBJECT_IMAGES`, and :data:`SUBJECT_VIEWS` or all the capture's
     when it has fewer (docs/method.md, "Several people")."""
     return SUBJECT_IMAGES, min(SUBJECT_VIEWS, streams)
+
+
+def hard_rays_settled(
+    capture: Capture, options: Options, norm: Normalised
+) -> Callable[[sp.csr_matrix, np.ndarray], str | None]:
+    """The hard-ray phase's stop (``alternation.Phase.settled``) for ``capture``: called with the
+    best iterate's W and normalised X, it returns why the phase is done, or None. Done when the
+    median residual of the detections against the graph's prediction (``W X``) fell by less
+    than :data:`SETTLED_GAIN` over the last :data:`SETTLED_CHECKS` calls and is above
+    :data:`EXACT_PX`: under detection noise the cost keeps falling by a fraction of a percent
+    every ten sweeps for hundreds of sweeps as W fits the noise, while the prediction the noise
+    level is read from, and the soft rays start from, has stopped changing (docs/method.md,
+    "Stopping")."""
+    history: list[float] = []
+
+    def settled(W: sp.csr_matrix, X: np.ndarray) -> str | None:
+        history.append(float(np.nanmedian(residuals_px(capture, predicted(W, norm.to_world(X))))))
+        if len(history) <= SETTLED_CHECKS or history[-1] < EXACT_PX:
+            return None
+        before = history[-SETTLED_CHECKS - 1]
+        if history[-1] > (1.0 - SETTLED_GAIN) * before:
+            return (f"converged: the graph's prediction of the detections settled at "
+                    f"{history[-1]:.2f} px (median; {before:.2f} px "
+                    f"{SETTLED_CHECKS * options.resequence_every} sweeps before)")
+        return None
+
+    return settled
 
 
 def soft_rays_kept(

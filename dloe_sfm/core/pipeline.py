@@ -32,6 +32,7 @@ from .decisions import (
     MOST_OF_AN_IMAGE,
     NOISE_KEPT,
     NOISY_ROUNDS,
+    hard_rays_settled,
     robust_round_undone,
     soft_rays_kept,
     spare_mispredicted,
@@ -200,7 +201,7 @@ def solve_events(
     events = [np.flatnonzero(labels == e) for e in range(int(labels.max()) + 1)]
     tasks = [(capture.subset(idx), options, None if X_world is None else X_world[idx])
              for idx in events]
-    workers = worker_count(options.workers, len(tasks), n)
+    workers = worker_count(options.workers, len(tasks), n * p)
     for e, idx in enumerate(events):
         logger.info("event %d: %d images", e, idx.size)
     if workers > 1:
@@ -291,8 +292,11 @@ def solve_event(
     st.timings["sequencing"] += sequencing_seconds
     # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
     # settle W first; the soft phase then only refines
-    success, message = alternate(st, prob, capture.frame, options,
-                                 Phase(np.inf, options.max_iterations))
+    success, message = alternate(
+        st, prob, capture.frame, options,
+        Phase(np.inf, options.max_iterations,
+              settled=hard_rays_settled(capture, options, norm) if soft else None),
+    )
     hard, hard_outcome, hard_sweeps = st.best, (success, message), len(st.costs)
     if auto:
         X_pred = predicted(hard.W, norm.to_world(hard.X))
