@@ -100,8 +100,9 @@ class Phase:
     """Up to ``budget`` sweeps at ray weight ``lambda2``; ``fit_px``: (callable, target) stops
     once the callable's median reprojection residual (pixels) of the best iterate is down to
     the target (the discrepancy principle of the soft phase); ``settled``: called with the best
-    iterate's W and X every ``resequence_every`` sweeps, stops the phase when it says so (the
-    hard phase: ``decisions.hard_rays_settled``)."""
+    iterate's W and X every ``resequence_every`` sweeps (after the re-sequencing, so that a
+    phase it stopped can be resumed), stops the phase when it returns a reason (the hard
+    phase: ``decisions.HardRaysSettled``)."""
 
     lambda2: float
     budget: int
@@ -204,13 +205,13 @@ def alternate(
                 f"converged: cost fell by < {options.cost_tolerance:.0e} in {window} sweeps",
             )
         if (it + 1) % window == 0:
-            if phase.settled is not None and (why := phase.settled(st.best.W, st.best.X)):
-                return True, why
             t0 = time.perf_counter()
             st.prior_f, st.f = sequence(st.X, prob, frames, options)
             st.timings["sequencing"] += time.perf_counter() - t0
             if options.fixed_degree:
                 st.D = degrees(st.f, prob, options)
+            if phase.settled is not None and (why := phase.settled(st.best.W, st.best.X)):
+                return True, why
     return False, f"stopped after {phase.budget} iterations"
 
 

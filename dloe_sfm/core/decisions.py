@@ -12,7 +12,7 @@ decision              function             evidence                      called 
 ====================  ===================  ============================  ========================
 how many people       subject_count        detections per image          multitarget.associate
 cluster is a person   subject_support      its images and streams        multitarget.associate
-hard phase done       hard_rays_settled    prediction px over sweeps     pipeline.solve_event
+hard phase done       HardRaysSettled      prediction px over sweeps     pipeline.solve_event
 soft or hard rays     soft_rays_kept       held-out px, obs. folds       pipeline.solve_event
 robust round kept     robust_round_undone  residual vs the plain solve   pipeline.robust_rounds
 image mispredicted    spare_mispredicted   share of it rejected          pipeline.robust_rounds
@@ -33,7 +33,6 @@ checks run call, so it stays below them in ``events.py``.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from enum import Enum
 
 import numpy as np
@@ -68,7 +67,7 @@ tests; people 0.7-3.6 times, Shelf's four 0.8-1.6: docs/method.md, "Several peop
 SETTLED_GAIN = 0.01
 """The hard-ray phase stops once the graph's prediction of the detections (median residual)
 fell by less than this share over the last :data:`SETTLED_CHECKS` checks
-(:func:`hard_rays_settled`)."""
+(:class:`HardRaysSettled`)."""
 SETTLED_CHECKS = 2
 """Checks (one every ``Options.resequence_every`` sweeps) over which the prediction must still
 improve by :data:`SETTLED_GAIN` for the hard-ray phase to go on."""
@@ -129,31 +128,36 @@ def subject_support(streams: int) -> tuple[int, int]:
     return SUBJECT_IMAGES, min(SUBJECT_VIEWS, streams)
 
 
-def hard_rays_settled(
-    capture: Capture, options: Options, norm: Normalised
-) -> Callable[[sp.csr_matrix, np.ndarray], str | None]:
+class HardRaysSettled:
     """The hard-ray phase's stop (``alternation.Phase.settled``) for ``capture``: called with the
-    best iterate's W and normalised X, it returns why the phase is done, or None. Done when the
-    median residual of the detections against the graph's prediction (``W X``) fell by less
-    than :data:`SETTLED_GAIN` over the last :data:`SETTLED_CHECKS` calls and is above
+    best iterate's W and normalised X every ``Options.resequence_every`` sweeps, it returns why
+    the phase is done, or None (and keeps it as ``reason``). Done when the median residual of
+    the detections against the graph's prediction (``W X``) fell by less than
+    :data:`SETTLED_GAIN` over the last :data:`SETTLED_CHECKS` calls and is above
     :data:`EXACT_PX`: under detection noise the cost keeps falling by a fraction of a percent
     every ten sweeps for hundreds of sweeps as W fits the noise, while the prediction the noise
-    level is read from, and the soft rays start from, has stopped changing (docs/method.md,
-    "Stopping")."""
-    history: list[float] = []
+    level is read from, and the soft rays start from, has stopped changing. The soft rays then
+    refine; where the held-out check keeps hard rays instead (:func:`soft_rays_kept`: exact
+    detections of fast motion at coarse sampling also leave residuals), the hard-ray phase is
+    resumed to its own end (``pipeline.solve_event``; docs/method.md, "Stopping")."""
 
-    def settled(W: sp.csr_matrix, X: np.ndarray) -> str | None:
-        history.append(float(np.nanmedian(residuals_px(capture, predicted(W, norm.to_world(X))))))
-        if len(history) <= SETTLED_CHECKS or history[-1] < EXACT_PX:
+    def __init__(self, capture: Capture, options: Options, norm: Normalised) -> None:
+        self.capture, self.norm = capture, norm
+        self.sweeps = SETTLED_CHECKS * options.resequence_every
+        self.history: list[float] = []
+        self.reason: str | None = None
+
+    def __call__(self, W: sp.csr_matrix, X: np.ndarray) -> str | None:
+        X_pred = predicted(W, self.norm.to_world(X))
+        self.history.append(float(np.nanmedian(residuals_px(self.capture, X_pred))))
+        now = self.history[-1]
+        if len(self.history) <= SETTLED_CHECKS or now < EXACT_PX:
             return None
-        before = history[-SETTLED_CHECKS - 1]
-        if history[-1] > (1.0 - SETTLED_GAIN) * before:
-            return (f"converged: the graph's prediction of the detections settled at "
-                    f"{history[-1]:.2f} px (median; {before:.2f} px "
-                    f"{SETTLED_CHECKS * options.resequence_every} sweeps before)")
-        return None
-
-    return settled
+        before = self.history[-SETTLED_CHECKS - 1]
+        if now > (1.0 - SETTLED_GAIN) * before:
+            self.reason = (f"converged: the graph's prediction of the detections settled at "
+                           f"{now:.2f} px (median; {before:.2f} px {self.sweeps} sweeps before)")
+        return self.reason
 
 
 def soft_rays_kept(

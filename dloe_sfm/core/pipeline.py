@@ -32,7 +32,7 @@ from .decisions import (
     MOST_OF_AN_IMAGE,
     NOISE_KEPT,
     NOISY_ROUNDS,
-    hard_rays_settled,
+    HardRaysSettled,
     robust_round_undone,
     soft_rays_kept,
     spare_mispredicted,
@@ -292,17 +292,17 @@ def solve_event(
     st.timings["sequencing"] += sequencing_seconds
     # soft rays start from the hard-ray solution: its X-steps are several times cheaper and
     # settle W first; the soft phase then only refines
-    success, message = alternate(
-        st, prob, capture.frame, options,
-        Phase(np.inf, options.max_iterations,
-              settled=hard_rays_settled(capture, options, norm) if soft else None),
-    )
+    settled = HardRaysSettled(capture, options, norm) if soft else None
+    success, message = alternate(st, prob, capture.frame, options,
+                                 Phase(np.inf, options.max_iterations, settled=settled))
     hard, hard_outcome, hard_sweeps = st.best, (success, message), len(st.costs)
+    paused = (st.X.copy(), st.D.copy(), st.W_var, st.prior_f, st.f)
     if auto:
         X_pred = predicted(hard.W, norm.to_world(hard.X))
         options = options.replace(noise_px=estimate_noise_px(residuals_px(capture, X_pred)))
     lambda2 = soft_ray_weight(capture, options)
-    if np.isfinite(lambda2):
+    soft_kept = np.isfinite(lambda2)
+    if soft_kept:
         st.X = st.best.X.copy()
         success, message = alternate(
             st, prob, capture.frame, options,
@@ -313,6 +313,12 @@ def solve_event(
             st.best, (success, message) = hard, hard_outcome
             del st.costs[hard_sweeps:], st.changes[hard_sweeps:]
             options = options.replace(noise_px=0.0)
+            soft_kept = False
+    if not soft_kept and settled is not None and settled.reason is not None:
+        # hard rays are the answer: their phase, stopped for the soft rays, runs to its end
+        st.X, st.D, st.W_var, st.prior_f, st.f = paused
+        success, message = alternate(st, prob, capture.frame, options,
+                                     Phase(np.inf, options.max_iterations - hard_sweeps))
     if auto:
         logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
     if progress is not None and len(st.costs) < st.total:
