@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from dloe_sfm.core.options import Options
+from dloe_sfm.core.parallel import MIN_PARALLEL_SLOTS, worker_count
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.windows import plan_windows
@@ -47,6 +48,18 @@ def test_windowed_solve_matches_the_single_solve(assets_dir):
     parallel = reconstruct(cap, Options(window_images=120, workers=2))
     np.testing.assert_array_equal(parallel.X, windowed.X)
     np.testing.assert_array_equal(parallel.order, windowed.order)
+
+
+def test_workers_by_default_from_enough_work(monkeypatch):
+    """``workers = auto``: one process per core and task from ``MIN_PARALLEL_SLOTS`` (image,
+    point) slots; below, or with one task, the calling process; a number is taken as given."""
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    assert worker_count("auto", 3, MIN_PARALLEL_SLOTS) == 2
+    assert worker_count("auto", 3, MIN_PARALLEL_SLOTS - 1) == 1
+    assert worker_count("auto", 1, 10 * MIN_PARALLEL_SLOTS) == 1
+    assert worker_count(4, 3, 1) == 3
+    # Shelf's four people: 278 images of 100 points, solved in two workers; one person's not
+    assert worker_count("auto", 2, 278 * 100) == 2 and worker_count("auto", 2, 278 * 25) == 1
 
 
 def test_windows_need_videos(assets_dir):
