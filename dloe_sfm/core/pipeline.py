@@ -273,6 +273,8 @@ def solve_event(
     """One event: init (unless given), alternation (hard rays, then soft ones with a finite ray
     weight; with ``noise_px`` = ``auto`` at the level estimated from the hard-ray solution, kept
     only if they predict held-out detections better: ``decisions.soft_rays_kept``), sequencing.
+    Where soft rays may follow, the hard-ray phase stops once the graph's prediction has
+    settled (``decisions.HardRaysSettled``), and resumes to its end where hard rays are kept.
     Returns a :class:`Result` in world units."""
     t_start = time.perf_counter()
     if X_world is None:
@@ -314,11 +316,11 @@ def solve_event(
             del st.costs[hard_sweeps:], st.changes[hard_sweeps:]
             options = options.replace(noise_px=0.0)
             soft_kept = False
-    if not soft_kept and settled is not None and settled.reason is not None:
+    resume = options.max_iterations - hard_sweeps
+    if not soft_kept and settled is not None and settled.reason is not None and resume > 0:
         # hard rays are the answer: their phase, stopped for the soft rays, runs to its end
         st.X, st.D, st.W_var, st.prior_f, st.f = paused
-        success, message = alternate(st, prob, capture.frame, options,
-                                     Phase(np.inf, options.max_iterations - hard_sweeps))
+        success, message = alternate(st, prob, capture.frame, options, Phase(np.inf, resume))
     if auto:
         logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
     if progress is not None and len(st.costs) < st.total:
