@@ -274,8 +274,9 @@ class Options:
     """Final order: the streams' affine clocks (SHP without two multi-image streams), or a line
     embedding of the distances (spectral ranking, classical MDS, shortest Hamiltonian path)."""
     max_iterations: int = 200
-    """Sweeps with hard rays (>= 1); a finite ray weight (lambda2 or noise_px) then adds soft
-    ones."""
+    """Most sweeps with hard rays (>= 1); a finite ray weight (lambda2 or noise_px) then adds
+    soft ones. Where soft ones may follow (also with ``noise_px`` auto), the hard ones stop
+    once the graph's prediction settles (``decisions.HardRaysSettled``)."""
     soft_iterations: int = 60
     """With a finite ray weight: at most this many sweeps with soft rays after the hard-ray solve
     (0 = keep the hard-ray solve). With the weight from ``noise_px`` they stop as soon as the
