@@ -298,7 +298,9 @@ def solve_event(
     success, message = alternate(st, prob, capture.frame, options,
                                  Phase(np.inf, options.max_iterations, settled=settled))
     hard, hard_outcome, hard_sweeps = st.best, (success, message), len(st.costs)
-    paused = (st.X.copy(), st.D.copy(), st.W_var, st.prior_f, st.f)
+    # a phase the settled prediction stopped: its state, to resume it if hard rays are the answer
+    paused = ((st.X.copy(), st.D.copy(), st.W_var, st.prior_f, st.f)
+              if settled is not None and settled.reason is not None else None)
     if auto:
         X_pred = predicted(hard.W, norm.to_world(hard.X))
         options = options.replace(noise_px=estimate_noise_px(residuals_px(capture, X_pred)))
@@ -317,7 +319,7 @@ def solve_event(
             options = options.replace(noise_px=0.0)
             soft_kept = False
     resume = options.max_iterations - hard_sweeps
-    if not soft_kept and settled is not None and settled.reason is not None and resume > 0:
+    if not soft_kept and paused is not None and resume > 0:
         # hard rays are the answer: their phase, stopped for the soft rays, runs to its end
         st.X, st.D, st.W_var, st.prior_f, st.f = paused
         success, message = alternate(st, prob, capture.frame, options, Phase(np.inf, resume))
