@@ -83,11 +83,13 @@ def test_a_subject_seen_by_some_streams_does_not_split_the_event(two_people) -> 
     that see it: one."""
     cap, truth = two_people
     merged = aggregate(seen_by_two_streams(cap), truth)
+    assert merged.subjects == 2 and merged.subset(np.arange(5)).subjects == 2
     options = Options()
     X0 = initialise(merged, options)
     X0[cap.stream_ids >= 2, cap.num_points:] += 0.2
-    assert np.unique(initial_events(merged, options, X0, 2)).size == 1
-    assert np.unique(initial_events(merged, options, X0)).size == 2  # the columns as one shape
+    assert np.unique(initial_events(merged, options, X0)).size == 1
+    one_shape = replace(merged, subjects=1)  # the columns as one shape
+    assert np.unique(initial_events(one_shape, options, X0)).size == 2
 
 
 def test_a_subject_of_one_stream_links_no_images(two_people) -> None:
@@ -99,7 +101,7 @@ def test_a_subject_of_one_stream_links_no_images(two_people) -> None:
     x[cap.stream_ids > 0, 1] = np.nan
     merged = aggregate(replace(cap, x=x), truth)
     options = Options()
-    assert np.unique(initial_events(merged, options, initialise(merged, options), 2)).size == 1
+    assert np.unique(initial_events(merged, options, initialise(merged, options))).size == 1
 
 
 def test_one_image_with_an_extra_detection_adds_no_subject(two_people) -> None:
@@ -179,10 +181,10 @@ def test_a_robust_round_resumed_from_another_association_fits_its_own(assets_dir
     def error_mm(X: np.ndarray) -> float:
         return float(np.linalg.norm(X - sim.X.reshape(X.shape), axis=-1).mean() * 1000)
 
-    start = solve_single(aggregate(cap, wrong), options, subjects=2)
+    start = solve_single(aggregate(cap, wrong), options)
     one_event = np.zeros(cap.num_images, dtype=np.int64)
     resumed = finish_single(merged, options, start, one_event, resumed=True)
-    own = solve_single(merged, options, subjects=2)
+    own = solve_single(merged, options)
     assert error_mm(start.X) > 3 * error_mm(own.X)
     assert error_mm(resumed.X) <= 1.2 * error_mm(own.X)
     assert resumed.nit > start.nit  # its sweeps count the start's
@@ -234,5 +236,6 @@ def test_pose2sim_trial_made_asynchronous_is_one_subject_and_one_event(shared_di
     # were the still person a subject, it would not split the main person's event
     both = aggregate(cap, np.where(np.isfinite(cap.x).all(axis=3).any(axis=2), [0, 1], -1))
     X0 = initialise(both, options)
-    assert np.unique(initial_events(both, options, X0, 2)).size == 1
-    assert np.unique(initial_events(both, options, X0)).size == 2  # compared on filled-in points
+    assert np.unique(initial_events(both, options, X0)).size == 1
+    one_shape = replace(both, subjects=1)  # compared on filled-in points
+    assert np.unique(initial_events(one_shape, options, X0)).size == 2

@@ -1,5 +1,7 @@
 """The DLOE core: each step against a generic solver, and the properties the method relies on."""
 
+from dataclasses import replace
+
 import numpy as np
 import osqp
 import pytest
@@ -696,3 +698,37 @@ def test_x_step_band_and_superlu_agree_with_dense(rng, monkeypatch, lambda2, gra
     ref = dense_x_step(W, D, prob, lambda1, lambda2)
     tol = 1e-6 if graph == "indefinite" else 1e-8  # SuperLU does not pivot here
     assert np.abs(X - ref).max() < tol * (1 + np.abs(ref).max())
+
+
+@pytest.mark.parametrize("lambda2", [np.inf, 0.5])
+def test_x_step_without_the_images_a_subject_is_absent_from_agrees_with_dense(
+        rng, monkeypatch, lambda2):
+    """A subject absent from most images (none of its points seen) is solved on the other
+    images alone and its absent points recovered from them (``xstep.ABSENT_SHARE``): the dense
+    solution, as when its dense block is too large to eliminate (``ELIMINATED_ENTRIES``); a
+    subject seen throughout, and a single-subject capture, are solved as before."""
+    cap, truth = small_capture(rng, n_per_stream=20, p=4)
+    n = cap.num_images
+    cap.x[rng.random((n, 4)) < 0.2] = np.nan
+    rare = np.flatnonzero(rng.random(n) < 0.75)
+    cap.x[rare, 2:] = np.nan  # subject 1: columns 2 and 3
+    cap = replace(cap, subjects=2)
+    prob = build_problem(cap, Options(), np.zeros(3), 1.0)
+    near = np.clip(np.arange(n)[:, None] + rng.integers(-4, 5, (n, 3)), 0, n - 1).ravel()
+    W = prob.chain + sp.csr_matrix((np.full(3 * n, 0.1), (np.repeat(np.arange(n), 3), near)),
+                                   (n, n))
+    D = rng.uniform(0.5, 1.5, n)
+    eliminated = []
+    real = xstep._absent_eliminated
+    monkeypatch.setattr(xstep, "_absent_eliminated", lambda Q, absent, reg: (
+        eliminated.append(absent.sum()) or real(Q, absent, reg)))
+    X = x_step(W, D, prob, lambda1=0.05, lambda2=lambda2, X_prev=truth.X)
+    assert eliminated == [rare.size]
+    ref = dense_x_step(W, D, prob, 0.05, lambda2)
+    assert np.abs(X - ref).max() < 1e-8 * (1 + np.abs(ref).max())
+    monkeypatch.setattr(xstep, "ELIMINATED_ENTRIES", 0)
+    kept = x_step(W, D, prob, lambda1=0.05, lambda2=lambda2, X_prev=truth.X)
+    assert len(eliminated) == 2
+    assert np.abs(kept - ref).max() < 1e-8 * (1 + np.abs(ref).max())
+    one = x_step(W, D, replace(prob, subjects=1), lambda1=0.05, lambda2=lambda2, X_prev=truth.X)
+    assert len(eliminated) == 2 and np.array_equal(one, kept)

@@ -94,6 +94,9 @@ class Capture:
     image_names : (N,) str
     symmetric_pairs : (K, 2) int or None
         Left/right point pairs (e.g. shoulders) a detector may swap; the solver checks them.
+    subjects : int
+        The people whose points the columns hold, P / subjects columns each, in turn
+        (``multitarget.aggregate``); 1 for a capture as read.
     image_ids : dict of str to (N, ...) int
         Per-image ids passed through the solver untouched (``observations.build_capture``:
         ``detection_index``, ``colmap_frame_id``); restricted by :meth:`subset` like the fields.
@@ -109,6 +112,7 @@ class Capture:
     confidence: np.ndarray | None = None
     image_names: np.ndarray | None = None
     symmetric_pairs: np.ndarray | None = None
+    subjects: int = 1
     image_ids: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -341,6 +345,7 @@ class Capture:
             confidence=None if self.confidence is None else self.confidence[idx],
             image_names=self.image_names[idx],
             symmetric_pairs=self.symmetric_pairs,
+            subjects=self.subjects,
             image_ids={k: v[idx] for k, v in self.image_ids.items()},
         )
 

@@ -235,7 +235,7 @@ def aggregate(capture: Capture, assignment: np.ndarray) -> Capture:
         x=x.reshape(n, s * p, 2), K=capture.K, R=capture.R, C=capture.C,
         stream=capture.stream, frame=capture.frame, fps=capture.fps,
         confidence=conf.reshape(n, s * p),
-        image_names=capture.image_names, symmetric_pairs=pairs,
+        image_names=capture.image_names, symmetric_pairs=pairs, subjects=s,
         image_ids=capture.image_ids,
     )
 
@@ -379,7 +379,7 @@ def reconstruct_subjects(
         return aggregate(capture, assignment).validate("aggregated subjects")
 
     merged = aggregated(assignment)
-    result, labels = plain_solve(merged, options, progress, s)
+    result, labels = plain_solve(merged, options, progress)
     # under detector noise the robust rounds re-solve once, from a solution's prediction: the
     # association is checked against the plain solve already, and a later round re-solves
     # from the last solution (finish_single's resumed) rather than from the start
@@ -397,13 +397,13 @@ def reconstruct_subjects(
             break
         merged = aggregated(assignment)
         result = (finish_single(merged, options, result, labels, progress, resumed=True)
-                  if resume else solve_single(merged, options, progress, s))
+                  if resume else solve_single(merged, options, progress))
     unfit = unfit_subjects(merged, assignment, result, options)
     if unfit.size:  # solved from the start: the robust rounds weight the others afresh
         assignment = without_subjects(assignment, unfit)
         s = int(assignment.max()) + 1
         merged = aggregated(assignment)
-        result = solve_single(merged, options, progress, s)
+        result = solve_single(merged, options, progress)
     return replace(
         result,
         seconds=time.perf_counter() - started,

@@ -60,7 +60,7 @@ logger = logging.getLogger("dloe_sfm")
 
 
 def solve_single(
-    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
+    capture: Capture, options: Options, progress: Progress | None = None
 ) -> Result:
     """Estimate every image's 3D points and the images' temporal graph and order (one subject).
 
@@ -69,14 +69,12 @@ def solve_single(
     (:func:`plain_solve`). With a robust loss (or symmetric pairs to check) the observations are
     then reweighted from the solution's residuals and the capture re-solved; unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
-    streams' fitted clocks (:func:`finish_single`). ``subjects``: the people whose points the
-    capture's columns hold (``multitarget.aggregate``), for the events."""
-    return finish_single(capture, options, *plain_solve(capture, options, progress, subjects),
-                         progress)
+    streams' fitted clocks (:func:`finish_single`)."""
+    return finish_single(capture, options, *plain_solve(capture, options, progress), progress)
 
 
 def plain_solve(
-    capture: Capture, options: Options, progress: Progress | None = None, subjects: int = 1
+    capture: Capture, options: Options, progress: Progress | None = None
 ) -> tuple[Result, np.ndarray]:
     """The first part of :func:`solve_single`: initialise, find the events and solve each
     (:func:`solve_events`); no robust round, no clocks. Returns the result and the (N,) event
@@ -85,7 +83,7 @@ def plain_solve(
     X_world = initialise(capture, options)
     labels = np.zeros(capture.num_images, dtype=np.int64)
     if options.segment_events:
-        labels = initial_events(capture, options, X_world, subjects)
+        labels = initial_events(capture, options, X_world)
     init_seconds = time.perf_counter() - started
     result = solve_events(capture, options, labels, X_world, progress)
     timings = {**result.timings, "init": result.timings["init"] + init_seconds}
@@ -142,28 +140,28 @@ def shape_space_graph(capture: Capture, options: Options, X_world: np.ndarray) -
     )
 
 
-def initial_events(
-    capture: Capture, options: Options, X_world: np.ndarray, subjects: int = 1
-) -> np.ndarray:
+def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> np.ndarray:
     """(N,) event labels from the shape-space W of the initial shapes (``shape_space_graph``).
 
     The graph is W_var alone: the chain prior would tie the last image of one event to the
     first of the next in every stream (and time-line candidates would bridge events). With
-    several ``subjects`` (columns s P .. s P + P - 1 are subject s) it is the sum of every
-    subject's graph over the images that see it: two images are compared only on a subject
-    both see, never on the values the initial shapes filled in where one is unseen (those tie
-    each image to the images that miss the same subjects); a subject with an image no other
-    stream's views at ``min_ray_angle`` links none (and with no subject left, the whole shapes
-    link the images). An event seen by fewer than two streams cannot be triangulated; it joins
+    several subjects (``capture.subjects``: columns s P .. s P + P - 1 are subject s) it is the
+    sum of every subject's graph over the images that see it: two images are compared only on
+    a subject both see, never on the values the initial shapes filled in where one is unseen
+    (those tie each image to the images that miss the same subjects); a subject with an image
+    no other stream's views at ``min_ray_angle`` links none (and with no subject left, the
+    whole shapes link the images). An event seen by fewer than two streams cannot be triangulated; it joins
     the largest event.
     """
+    subjects = capture.subjects
     n, p = capture.num_images, capture.num_points // subjects
     pieces = []
     if subjects > 1:
         for k, cols in enumerate(np.arange(subjects * p).reshape(subjects, p)):
             idx = np.flatnonzero(capture.visible[:, cols].any(axis=1))
             one = replace(capture.subset(idx), x=capture.x[idx][:, cols],
-                          confidence=capture.weights[idx][:, cols], symmetric_pairs=None)
+                          confidence=capture.weights[idx][:, cols], symmetric_pairs=None,
+                          subjects=1)
             try:
                 pieces.append(parts(shape_space_graph(one, options, X_world[idx][:, cols]), idx))
             except InputError:  # an image of it no other stream views at an angle: it links none

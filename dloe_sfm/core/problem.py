@@ -70,6 +70,7 @@ def build_problem(capture: Capture, options: Options, origin: np.ndarray, scale:
         chain=chain,
         prior=np.where(has_chain, options.prior_weight, 0.0),
         rates=known_rates(capture),
+        subjects=capture.subjects,
     )
 
 

@@ -29,6 +29,7 @@ class Problem:
     chain: sp.csr_matrix  # (N, N) intra-stream chain prior (rows sum to 1 or 0)
     prior: np.ndarray  # (N,) weight a_i of the chain prior in row i (0 for lone photos)
     rates: np.ndarray | None = None  # (N,) every image's stream's known frame rate, or None
+    subjects: int = 1  # the people whose points the columns hold, P / subjects each in turn
 
     @property
     def visible(self) -> np.ndarray:

@@ -4,6 +4,8 @@ steps are in :mod:`.steps`, the W-step in :mod:`.wstep`."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -28,6 +30,16 @@ milliseconds of LAPACK, less than SuperLU takes on those systems (docs/method.md
 BATCH = 2**20
 """With hard rays the X-step solves the points in groups of about this many of Q's entries over
 all of them (:func:`_hard_points`: one factorisation per group, memory bounded at any size)."""
+
+
+ABSENT_SHARE = 0.5
+"""A subject absent from at least this share of an X-step's images (none of its points seen)
+has those images eliminated from its points' systems (:func:`_absent_eliminated`): they are
+the most unknowns of the systems, 3 per image, and widen their bands. Eliminating the few
+images a subject seen throughout misses adds links that widen its band instead."""
+ELIMINATED_ENTRIES = 2**22
+"""Largest dense block (absent images x the other images they link to) an elimination solves
+for; a subject whose block is larger keeps its absent images as unknowns."""
 
 
 @BLAS.wrap(limits=1, user_api="blas")
@@ -57,6 +69,9 @@ def x_step(
     Cholesky finds not numerically positive definite, goes to SuperLU instead
     (:func:`_superlu`).
 
+    With several subjects (``prob.subjects``), one absent from at least :data:`ABSENT_SHARE`
+    of the images is solved on the others alone (:func:`_absent_eliminated`), the same X.
+
     The BLAS runs on one thread here: the banded Cholesky's blocks are too small to share, and
     OpenBLAS's threads, which wait for each block, took 15 times as long as one thread when
     another process kept a core busy (docs/method.md, "Speed").
@@ -64,19 +79,96 @@ def x_step(
     n, p = prob.rays.shape[:2]
     Q = smoothness_matrix(W, D, lambda1)
     reg = 1e-10 * max(Q.diagonal().mean(), 1e-300)
+    vis = prob.visible
+    r0 = np.nan_to_num(prob.rays)
+    X = np.empty((n, p, 3))
+    rest = np.ones(p, dtype=bool)
+    for cols in np.split(np.arange(p), prob.subjects) if prob.subjects > 1 else ():
+        absent = ~vis[:, cols].any(axis=1)
+        if absent.all() or absent.sum() < ABSENT_SHARE * n:
+            continue
+        eliminated = _absent_eliminated(Q, absent, reg)
+        if eliminated is None:
+            continue
+        Q_kept, solve_absent, kept = eliminated
+        X_kept = _points(Q_kept, reg, lambda2, r0[kept][:, cols], vis[kept][:, cols],
+                         prob.C[kept], prob.weights[kept][:, cols])
+        X[np.ix_(kept, cols)] = X_kept
+        X[np.ix_(absent, cols)] = solve_absent(X_kept)
+        rest[cols] = False
+    if rest.all():
+        X = _points(Q, reg, lambda2, r0, vis, prob.C, prob.weights)
+    elif rest.any():
+        X[:, rest] = _points(Q, reg, lambda2, r0[:, rest], vis[:, rest], prob.C,
+                             prob.weights[:, rest])
+    bad = ~np.isfinite(X)
+    X[bad] = X_prev[bad]
+    return X
+
+
+def _absent_eliminated(
+    Q: sp.csr_matrix, absent: np.ndarray, reg: float
+) -> tuple[sp.csr_matrix, Callable[[np.ndarray], np.ndarray], np.ndarray] | None:
+    """The X-step of a subject's points without the images it is ``absent`` from (N,): (the
+    smoothness form on the other images, the absent images' X (A, S, 3) from the others'
+    (K, S, 3), the other images (K,)); None when the elimination's dense block exceeds
+    :data:`ELIMINATED_ENTRIES`.
+
+    In an absent image a point is 3 free coordinates, each seeing Q alone, so minimising over
+    them leaves Q's Schur complement ``Q_kk - Q_ka (Q_aa + reg I)^-1 Q_ak`` on the other images
+    (Kron reduction), for every coordinate and every point of the subject alike; the absent
+    points are then ``-(Q_aa + reg I)^-1 Q_ak X_k``. The complement links the images next to
+    each stretch the subject is absent from, as the stretch did.
+    """
+    kept, gone = np.flatnonzero(~absent), np.flatnonzero(absent)
+    rows = Q[gone]
+    Q_ak = rows[:, kept].tocsc()
+    linked = np.flatnonzero(np.diff(Q_ak.indptr) > 0)  # the other images the absent ones link
+    if gone.size * linked.size > ELIMINATED_ENTRIES:
+        return None
+    Q_aa = sp.csc_matrix(rows[:, gone] + reg * sp.identity(gone.size, format="csr"))
+    lu = spla.splu(
+        Q_aa, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
+    Q_al = Q_ak[:, linked]
+    fill = np.asarray(Q_al.T @ lu.solve(Q_al.toarray())) if linked.size else np.zeros((0, 0))
+    i, j = np.nonzero(fill)
+    Q_kept = sp.csr_matrix(
+        Q[kept][:, kept]
+        - sp.csr_matrix((fill[i, j], (linked[i], linked[j])), shape=(kept.size, kept.size))
+    )
+
+    def solve_absent(X_kept: np.ndarray) -> np.ndarray:
+        """The absent images' X (A, S, 3) from the other images' ``X_kept`` (K, S, 3)."""
+        rhs = -(Q_ak @ X_kept.reshape(kept.size, -1))
+        return lu.solve(rhs).reshape(gone.size, *X_kept.shape[1:])
+
+    return Q_kept, solve_absent, kept
+
+
+def _points(
+    Q: sp.csr_matrix,
+    reg: float,
+    lambda2: float,
+    r0: np.ndarray,
+    vis: np.ndarray,
+    C: np.ndarray,
+    weights: np.ndarray,
+) -> np.ndarray:
+    """X (N, P, 3) of the points of rays ``r0`` (N, P, 3, zero where unobserved) seen in the
+    images ``vis`` (N, P) with ``weights`` (N, P), for the smoothness form Q (:func:`x_step`)."""
+    n, p = vis.shape
     perm = reverse_cuthill_mckee(Q, symmetric_mode=True)
     rank = np.empty(n, dtype=np.int64)
     rank[perm] = np.arange(n)
     coo = Q.tocoo()
     upper = rank[coo.row] <= rank[coo.col]
     qi, qk, q = coo.row[upper].astype(np.int64), coo.col[upper].astype(np.int64), coo.data[upper]
-    vis = prob.visible
-    r0 = np.nan_to_num(prob.rays)
     X = np.empty((n, p, 3))
     if np.isinf(lambda2):
         # points solved together: about BATCH of Q's entries over all of them
         for c in np.array_split(np.arange(p), min(p, max(1, -(-p * qi.size // BATCH)))):
-            X[:, c] = _hard_points(Q, perm, qi, qk, q, r0[:, c], vis[:, c], prob.C, reg)
+            X[:, c] = _hard_points(Q, perm, qi, qk, q, r0[:, c], vis[:, c], C, reg)
     else:
         width = max(3 * int((rank[qk] - rank[qi]).max(initial=0)), 2)
         band_Q = None
@@ -86,15 +178,13 @@ def x_step(
             band_Q[3 * rank[qi][:, None] + np.arange(3), 3 * (rank[qk] - rank[qi])[:, None]] = (
                 q[:, None])
         for j in range(p):
-            wgt = lambda2 * prob.weights[:, j]
-            z = None if band_Q is None else _soft_band(band_Q, rank, r0[:, j], prob.C, wgt, reg)
+            wgt = lambda2 * weights[:, j]
+            z = None if band_Q is None else _soft_band(band_Q, rank, r0[:, j], C, wgt, reg)
             if z is None:
-                H, rhs = _soft_system(Q, r0[:, j], prob.C, wgt, reg)
+                H, rhs = _soft_system(Q, r0[:, j], C, wgt, reg)
                 X[:, j] = _superlu(H, rhs).reshape(n, 3)
             else:
                 X[:, j] = z.reshape(n, 3)[rank]
-    bad = ~np.isfinite(X)
-    X[bad] = X_prev[bad]
     return X
 
 
