@@ -1,10 +1,14 @@
 """Overlapping time windows solved apart and stitched (dloe_sfm.core.windows)."""
 
+import logging
+import os
+
 import numpy as np
 import pytest
 
+from dloe_sfm.core import parallel
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.parallel import MIN_PARALLEL_SLOTS, worker_count
+from dloe_sfm.core.parallel import MIN_PARALLEL_SLOTS, kept_workers, map_in_processes, worker_count
 from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.windows import plan_windows
@@ -60,6 +64,26 @@ def test_workers_by_default_from_enough_work(monkeypatch):
     assert worker_count(4, 3, 1) == 3
     # Shelf's four people: 278 images of 100 points, solved in two workers; one person's not
     assert worker_count("auto", 2, 278 * 100) == 2 and worker_count("auto", 2, 278 * 25) == 1
+
+
+def _pid(_: int) -> int:
+    """The worker's process id, logged."""
+    logging.getLogger("dloe_sfm").info("task in a worker")
+    return os.getpid()
+
+
+def test_kept_workers_serve_every_parallel_step_and_end_after(caplog):
+    """Inside ``kept_workers`` the processes ``map_in_processes`` starts serve its next calls
+    and end on leaving; outside, each call starts its own. What a task logs is logged here."""
+    caplog.set_level("INFO", logger="dloe_sfm")
+    with kept_workers():
+        first = list(map_in_processes(_pid, range(4), 2))
+        again = list(map_in_processes(_pid, range(4), 2))
+        pools = list(parallel._kept.values())
+    assert set(again) <= set(first) and len(set(first)) <= 2 and os.getpid() not in first
+    assert parallel._kept is None and all(p._shutdown_thread for p in pools)
+    assert caplog.messages == ["task in a worker"] * 8
+    assert not set(map_in_processes(_pid, range(2), 2)) & set(first)
 
 
 def test_windows_need_videos(assets_dir):

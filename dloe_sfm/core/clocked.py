@@ -27,6 +27,7 @@ from .decisions import (
     soft_rays_on_clocks,
 )
 from .options import Options
+from .parallel import map_in_processes, worker_count
 from .problem import Normalised, assemble, build_problem, normalise, parts
 from .result import Result
 from .robust import loss_scale, loss_weights, residuals_px, reweighted
@@ -126,47 +127,80 @@ def placements(
     with each stream's offsets of each point's rays (:func:`event_clocks`), their rates held at the
     ratios of the streams' frame rates where the event's capture knows them all
     (``problem.known_rates``): fitted with the offsets, free rates drift where the motion is slow
-    (docs/method.md, "Known frame rates")."""
+    (docs/method.md, "Known frame rates"). The events are placed in ``options.workers``
+    processes where there is enough work (``core.parallel``)."""
     n = capture.num_images
     rejected, residual = outlier_arrays(result)
-    placed = []
+    tasks = []
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
         ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
         if ids.size < 2 or counts.min() < 3:
             continue
         sub = capture.subset(idx) if idx.size < n else capture
-        norm = normalise(sub, options, result.X[idx])
-        prob = norm.problem
-        Xe = norm.to_normal(result.X[idx])
-        t0 = affine_time(Xe, prob.streams, sub.frame, rates=prob.rates)
-        if t0 is None:
-            continue
-        rates = prob.rates if offsets else None
-        t = event_clocks(t0, prob, sub.frame, options, offsets=offsets, rates=rates)
-        moved = moved_periods(t0, t, prob.streams, sub.frame)
-        if moved >= REACH:
-            logger.info("event %d: the clock fit moved a stream %.1f frame periods from DLOE's "
-                        "placement; the clocks are kept only if they predict held-out detections",
-                        e, moved)
-        noise, held = options.noise_px, None
-        if auto_noise and noise == 0:
-            noise, held = soft_rays_on_clocks(sub, options, result.X[idx], result.D[idx],
-                                         result.W[idx][:, idx], t)
-        ticked = options.replace(noise_px=noise)
-        # the chain's weights come from the time line: no compactness term (as the oracle)
-        W, D_e = time_chain(t)
-        Xe = x_step(W, D_e, prob, lambda1=0.0, lambda2=soft_ray_weight(sub, ticked), X_prev=Xe)
-        judged, rej_e, res_e = sub, rejected[idx], residual[idx]
-        if checked is not None:
-            csub = checked.subset(idx) if idx.size < n else checked
-            t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(
-                csub, ticked, norm, t, Xe, rej_e, offsets=offsets, rates=rates)
-            if weights is not None:  # both models are judged on the clocks' verdict
-                judged, held = reweighted(csub, weights), None
-        placed.append(Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged,
-                                held, moved))
-    return placed
+        csub = None if checked is None else checked.subset(idx) if idx.size < n else checked
+        tasks.append(EventToPlace(e, idx, sub, csub, options, result.X[idx], result.D[idx],
+                                  result.W[idx][:, idx], rejected[idx], residual[idx],
+                                  auto_noise, offsets))
+    slots = sum(task.idx.size for task in tasks) * capture.num_points
+    workers = worker_count(options.workers, len(tasks), slots)
+    placed = (map_in_processes(place_event, tasks, workers) if workers > 1
+              else map(place_event, tasks))
+    return [p for p in placed if p is not None]
+
+
+class EventToPlace(NamedTuple):
+    """What :func:`place_event` places: event ``e`` of images ``idx``, its capture ``sub`` and
+    ``checked`` (:func:`placements`), the graph's points, D and W on it, the robust rounds'
+    rejected observations and their residuals, and the flags of :func:`placements`."""
+
+    e: int
+    idx: np.ndarray
+    sub: Capture
+    checked: Capture | None
+    options: Options
+    X: np.ndarray
+    D: np.ndarray
+    W: sp.csr_matrix
+    rejected: np.ndarray
+    residual: np.ndarray
+    auto_noise: bool
+    offsets: bool
+
+
+def place_event(task: EventToPlace) -> Placement | None:
+    """One event of :func:`placements` on its clocks; None when its first guess places no
+    stream (``sequencing.affine_time``)."""
+    e, idx, sub, options = task.e, task.idx, task.sub, task.options
+    offsets = task.offsets
+    norm = normalise(sub, options, task.X)
+    prob = norm.problem
+    Xe = norm.to_normal(task.X)
+    t0 = affine_time(Xe, prob.streams, sub.frame, rates=prob.rates)
+    if t0 is None:
+        return None
+    rates = prob.rates if offsets else None
+    t = event_clocks(t0, prob, sub.frame, options, offsets=offsets, rates=rates)
+    moved = moved_periods(t0, t, prob.streams, sub.frame)
+    if moved >= REACH:
+        logger.info("event %d: the clock fit moved a stream %.1f frame periods from DLOE's "
+                    "placement; the clocks are kept only if they predict held-out detections",
+                    e, moved)
+    noise, held = options.noise_px, None
+    if task.auto_noise and noise == 0:
+        noise, held = soft_rays_on_clocks(sub, options, task.X, task.D, task.W, t)
+    ticked = options.replace(noise_px=noise)
+    # the chain's weights come from the time line: no compactness term (as the oracle)
+    W, D_e = time_chain(t)
+    Xe = x_step(W, D_e, prob, lambda1=0.0, lambda2=soft_ray_weight(sub, ticked), X_prev=Xe)
+    judged, rej_e, res_e = sub, task.rejected, task.residual
+    if task.checked is not None:
+        t, W, D_e, Xe, rej_e, res_e, weights = robust_on_clocks(
+            task.checked, ticked, norm, t, Xe, rej_e, offsets=offsets, rates=rates)
+        if weights is not None:  # both models are judged on the clocks' verdict
+            judged, held = reweighted(task.checked, weights), None
+    return Placement(idx, t, W, D_e, norm.to_world(Xe), rej_e, res_e, noise, judged, held,
+                     moved)
 
 
 def event_clocks(

@@ -2,11 +2,14 @@
 
 Workers are spawned with one BLAS / OpenMP thread each (set in their environment before they
 import numpy), so that W workers use W cores and never oversubscribe them. A solve gives the
-same numbers in a worker as in the calling process when both run one BLAS thread.
+same numbers in a worker as in the calling process when both run one BLAS thread. What a task
+logs to ``dloe_sfm``'s logger is logged again in the calling process, after its result. Inside
+:func:`kept_workers` the workers started stay for the next tasks.
 """
 
 from __future__ import annotations
 
+import logging
 import multiprocessing as mp
 import os
 from collections.abc import Callable, Iterable, Iterator
@@ -50,10 +53,71 @@ def worker_count(workers: int | str, tasks: int, slots: int) -> int:
     return min(int(workers), tasks)
 
 
+_kept: dict[int, ProcessPoolExecutor] | None = None
+"""The pools of :func:`kept_workers` by their number of processes (None: outside it)."""
+
+
+@contextmanager
+def kept_workers() -> Iterator[None]:
+    """Inside, :func:`map_in_processes` keeps the processes it starts for its next calls (a
+    spawned worker takes about a second to start), and they end on leaving."""
+    global _kept
+    if _kept is not None:  # already inside: the outer one keeps them
+        yield
+        return
+    _kept = {}
+    try:
+        yield
+    finally:
+        pools, _kept = _kept, None
+        for pool in pools.values():
+            pool.shutdown(cancel_futures=True)
+
+
 def map_in_processes(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
     """``fn`` over ``items`` in ``workers`` spawned single-threaded processes (results in order;
     ``fn`` a module-level function and items picklable). The first exception raised by a task
     is raised here."""
-    with single_threaded_children(), ProcessPoolExecutor(
-            workers, mp_context=mp.get_context("spawn")) as pool:
-        yield from pool.map(fn, items)
+    level = logging.getLogger("dloe_sfm").getEffectiveLevel()
+    kept = _kept is not None
+    pool = _kept.get(workers) if kept else None
+    if pool is None:
+        pool = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"))
+        if kept:
+            _kept[workers] = pool
+    try:
+        with single_threaded_children():  # processes start as tasks are submitted
+            done = pool.map(_logged, [(fn, item, level) for item in items])
+        for result, records in done:
+            for record in records:
+                logging.getLogger(record.name).handle(record)
+            yield result
+    finally:
+        if not kept:
+            pool.shutdown(cancel_futures=True)
+
+
+class _Kept(logging.Handler):
+    """The records a task logs, their messages formatted (their arguments may not pickle)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        record.msg, record.args, record.exc_info = record.getMessage(), None, None
+        self.records.append(record)
+
+
+def _logged(task: tuple[Callable[[T], R], T, int]) -> tuple[R, list[logging.LogRecord]]:
+    """``fn(item)`` in a worker, with what it logs at ``level`` or above to ``dloe_sfm``'s
+    logger: (result, records)."""
+    fn, item, level = task
+    logger, kept = logging.getLogger("dloe_sfm"), _Kept()
+    logger.setLevel(level)
+    logger.addHandler(kept)
+    logger.propagate = False
+    try:
+        return fn(item), kept.records
+    finally:
+        logger.removeHandler(kept)

@@ -15,6 +15,7 @@ from .assess import assess
 from .capture import Capture
 from .multitarget import reconstruct_subjects
 from .options import Options
+from .parallel import kept_workers
 from .pipeline import solve_single
 from .result import Result
 from .windows import solve_windowed
@@ -33,14 +34,16 @@ def reconstruct(
     :data:`dloe_sfm.core.alternation.Progress`). The BLAS runs on one thread throughout, as in
     the event workers (``core.parallel``): its threads share blocks too small to gain from
     them, and wait for one another when another process keeps a core busy (docs/method.md,
-    "Speed").
+    "Speed"). Worker processes, once started, serve every later parallel step of the solve
+    (``parallel.kept_workers``).
     """
     options = options or Options()
     size = options.window_size(capture.num_images)
-    if capture.x.ndim == 4:
-        result = reconstruct_subjects(capture, options, progress=progress)
-    elif size:
-        result = solve_windowed(capture, options, size, size // 10)
-    else:
-        result = solve_single(capture, options, progress)
+    with kept_workers():
+        if capture.x.ndim == 4:
+            result = reconstruct_subjects(capture, options, progress=progress)
+        elif size:
+            result = solve_windowed(capture, options, size, size // 10)
+        else:
+            result = solve_single(capture, options, progress)
     return assess(capture, result, lambda1=options.lambda1)
