@@ -72,17 +72,16 @@ def _pid(_: int) -> int:
     return os.getpid()
 
 
-def test_kept_workers_serve_every_parallel_step_and_end_after(caplog):
+def test_kept_workers_serve_every_parallel_step_and_end_after(log_lines):
     """Inside ``kept_workers`` the processes ``map_in_processes`` starts serve its next calls
     and end on leaving; outside, each call starts its own. What a task logs is logged here."""
-    caplog.set_level("INFO", logger="dloe_sfm")
     with kept_workers():
         first = list(map_in_processes(_pid, range(4), 2))
         again = list(map_in_processes(_pid, range(4), 2))
         pools = list(parallel._kept.values())
     assert set(again) <= set(first) and len(set(first)) <= 2 and os.getpid() not in first
     assert parallel._kept is None and all(p._shutdown_thread for p in pools)
-    assert caplog.messages == ["task in a worker"] * 8
+    assert log_lines == ["task in a worker"] * 8
     assert not set(map_in_processes(_pid, range(2), 2)) & set(first)
 
 
