@@ -150,8 +150,8 @@ def initial_events(capture: Capture, options: Options, X_world: np.ndarray) -> n
     a subject both see, never on the values the initial shapes filled in where one is unseen
     (those tie each image to the images that miss the same subjects); a subject with an image
     no other stream's views at ``min_ray_angle`` links none (and with no subject left, the
-    whole shapes link the images). An event seen by fewer than two streams cannot be triangulated; it joins
-    the largest event.
+    whole shapes link the images). An event seen by fewer than two streams cannot be
+    triangulated; it joins the largest event.
     """
     subjects = capture.subjects
     n, p = capture.num_images, capture.num_points // subjects
