@@ -97,7 +97,7 @@ def map_in_processes(fn: Callable[[T], R], items: Iterable[T], workers: int) -> 
             pool.shutdown(cancel_futures=True)
 
 
-class _Kept(logging.Handler):
+class _Records(logging.Handler):
     """The records a task logs, their messages formatted (their arguments may not pickle)."""
 
     def __init__(self) -> None:
@@ -113,11 +113,11 @@ def _logged(task: tuple[Callable[[T], R], T, int]) -> tuple[R, list[logging.LogR
     """``fn(item)`` in a worker, with what it logs at ``level`` or above to ``dloe_sfm``'s
     logger: (result, records)."""
     fn, item, level = task
-    logger, kept = logging.getLogger("dloe_sfm"), _Kept()
+    logger, records = logging.getLogger("dloe_sfm"), _Records()
     logger.setLevel(level)
-    logger.addHandler(kept)
+    logger.addHandler(records)
     logger.propagate = False
     try:
-        return fn(item), kept.records
+        return fn(item), records.records
     finally:
-        logger.removeHandler(kept)
+        logger.removeHandler(records)
