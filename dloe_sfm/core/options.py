@@ -325,9 +325,10 @@ class Options:
     """Find temporally disjoint events first (components of a shape-space W on the initial
     shapes) and solve each on its own."""
     workers: int | str = AUTO
-    """Processes that solve a capture's events (or windows) in parallel (``core.parallel``: one
-    BLAS thread each). ``auto``: one per core, from 1000 images; 1: all in this process.
-    ``auto`` or an integer >= 1."""
+    """Processes that solve a capture's events (or windows) and place them on their stream
+    clocks in parallel (``core.parallel``: one BLAS thread each, kept through one solve).
+    ``auto``: one per core (at most one per event) from 25 000 (image, point) slots; 1: all in
+    this process. ``auto`` or an integer >= 1."""
     window_images: int | str = AUTO
     """A capture of more images is solved in overlapping time windows of this many (a tenth of
     them shared with the next window), stitched (``core.windows``). ``auto``: windows of
