@@ -159,7 +159,7 @@ def test_exact_detections_the_hard_phase_stopped_for_resume_it_to_its_end(assets
     """Exact detections at 7.5 Hz with frames dropped: the graph's interpolation leaves
     residuals above ``EXACT_PX``, so the hard-ray phase stops for the soft rays; the held-out
     check keeps hard rays, and their phase is resumed to its end: the same points as a hard
-    phase never stopped."""
+    phase never stopped. The progress never steps back (the soft sweeps thrown away count)."""
     seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
     cap, _ = simulate(seq, SimulationSettings(rate=7.5, drop=0.3, missing=0.3))
     options = Options(robust_loss="none", stream_clocks=False)
@@ -172,8 +172,12 @@ def test_exact_detections_the_hard_phase_stopped_for_resume_it_to_its_end(assets
         return reasons[-1]
 
     monkeypatch.setattr(HardRaysSettled, "__call__", noted)
-    resumed = pipeline.solve_event(cap, options, X_world)
+    calls = []
+    resumed = pipeline.solve_event(cap, options, X_world,
+                                   progress=lambda done, total, _: calls.append((done, total)))
     assert any(reasons) and resumed.noise_px == 0.0
+    done = [d for d, _ in calls]
+    assert done == sorted(done) and done[-1] == calls[-1][1] > resumed.nit
     monkeypatch.setattr(HardRaysSettled, "__call__", lambda self, W, X: None)
     never = pipeline.solve_event(cap, options, X_world)
     assert resumed.nit == never.nit

@@ -37,7 +37,8 @@ Progress = Callable[[int, int, dict], None]
 far and the solve's sweep budget (hard plus soft phase); ``info`` holds the sweep's ``cost``
 (total cost) and ``change`` (rms change of X, normalised units). A solve that converges before
 its budget ends with one more call with ``done == total`` (same info). Every event and every
-robust re-solve is a solve of its own: ``done`` starts again from 1."""
+robust re-solve is a solve of its own: ``done`` starts again from 1. Within a solve it never
+falls, sweeps that are later discarded (soft rays the held-out check rejects) included."""
 
 
 def degrees(
@@ -120,6 +121,7 @@ class Search:
     f: np.ndarray
     total: int  # sweep budget of the whole solve (progress)
     progress: Progress | None = None
+    swept: int = 0  # sweeps run, discarded ones included (progress)
     W_var: sp.csr_matrix | None = None
     costs: list = field(default_factory=list)
     changes: list = field(default_factory=list)
@@ -179,8 +181,9 @@ def alternate(
         change = float(np.sqrt(np.mean((X_new - st.X) ** 2)))
         st.costs.append(cost)
         st.changes.append(change)
+        st.swept += 1
         if st.progress is not None:
-            st.progress(len(st.costs), st.total, {"cost": cost, "change": change})
+            st.progress(st.swept, st.total, {"cost": cost, "change": change})
         logger.debug("iteration %d: cost %.6e, rms change %.3e", len(st.costs), cost, change)
         if st.best is None or cost <= st.best.cost:
             st.best = Best(cost, X_new.copy(), st.W_var, W, st.D.copy())

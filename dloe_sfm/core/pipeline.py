@@ -323,7 +323,7 @@ def solve_event(
         success, message = alternate(st, prob, capture.frame, options, Phase(np.inf, resume))
     if auto:
         logger.info("detection noise estimated from the data: %.2f px", options.noise_px)
-    if progress is not None and len(st.costs) < st.total:
+    if progress is not None and st.swept < st.total:
         progress(st.total, st.total, {"cost": st.costs[-1], "change": st.changes[-1]})
     best = st.best
     t0 = time.perf_counter()
