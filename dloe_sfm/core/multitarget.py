@@ -68,18 +68,21 @@ DISTINCT = 2.0
 of the other image: where two people are about as near, the link is left to the graph."""
 
 
-def detection_sizes(capture: Capture) -> np.ndarray:
-    """(N, M) the longer side of each detection's bounding box (0: no point)."""
-    vis = capture.visible[..., None]
+def detection_sizes(capture: Capture, visible: np.ndarray) -> np.ndarray:
+    """(N, M) the longer side of each detection's bounding box (0: no point); ``visible``
+    (N, M, P) the capture's."""
+    vis = visible[..., None]
     lo = np.where(vis, capture.x, np.inf).min(axis=2)
     hi = np.where(vis, capture.x, -np.inf).max(axis=2)
     return np.where(vis.any(axis=2), hi - lo, 0.0).max(axis=-1)
 
 
-def step_costs(capture: Capture, sizes: np.ndarray, a: int, b: int) -> np.ndarray:
+def step_costs(capture: Capture, visible: np.ndarray, sizes: np.ndarray, a: int, b: int
+               ) -> np.ndarray:
     """(M, M) displacement between the detections of images ``a`` and ``b``: the median
-    distance over the points both hold (at least 3, else inf) over the larger one's size."""
-    both = capture.visible[a][:, None] & capture.visible[b][None]  # (M, M, P)
+    distance over the points both hold (at least 3, else inf) over the larger one's size;
+    ``visible`` (N, M, P) the capture's."""
+    both = visible[a][:, None] & visible[b][None]  # (M, M, P)
     d = np.linalg.norm(capture.x[a][:, None] - capture.x[b][None], axis=-1)
     with warnings.catch_warnings():  # all-NaN slices: pairs without a common point
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -98,14 +101,15 @@ def stream_links(capture: Capture) -> np.ndarray:
     other detection of either image. Lone photos have none.
     """
     m = capture.x.shape[1]
-    sizes = detection_sizes(capture)
+    visible = capture.visible
+    sizes = detection_sizes(capture, visible)
     runs = stream_runs(capture.stream, capture.frame)
     order = np.lexsort((capture.frame, runs))
     pairs = []
     for a, b in zip(order[:-1], order[1:], strict=True):
         if runs[a] != runs[b]:
             continue
-        cost = step_costs(capture, sizes, a, b)
+        cost = step_costs(capture, visible, sizes, a, b)
         rows, cols = linear_sum_assignment(np.minimum(cost, 1e300))
         for i, j in zip(rows, cols, strict=True):
             others = min(np.delete(cost[i], j).min(initial=np.inf),
