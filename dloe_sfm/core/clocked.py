@@ -273,10 +273,21 @@ def verdicts(placed: list[Placement], options: Options, result: Result) -> list[
     against the graph of ``result`` (``decisions.clock_verdict``); with ``on`` kept, except that
     a fit that moved a stream ``clocks.REACH`` frame periods or more from DLOE's placement is
     checked too (``decisions.clocks_checked``): the rays may not pin its clocks, or DLOE's
-    placement was that far off (docs/method.md, "Stream clocks")."""
-    return [clock_verdict(p.judged, options, result.X[p.idx], result.D[p.idx], p.t, p.noise,
-                          p.held) if clocks_checked(options, p.moved) else Verdict.KEPT
-            for p in placed]
+    placement was that far off (docs/method.md, "Stream clocks"). The checks run in
+    ``options.workers`` processes as the placements do."""
+    checked = [clocks_checked(options, p.moved) for p in placed]
+    tasks = [(p.judged, options, result.X[p.idx], result.D[p.idx], p.t, p.noise, p.held)
+             for p, check in zip(placed, checked, strict=True) if check]
+    slots = sum(task[0].num_images for task in tasks) * result.X.shape[1]
+    workers = worker_count(options.workers, len(tasks), slots)
+    said = iter(map_in_processes(_clock_verdict_task, tasks, workers) if workers > 1
+                else map(_clock_verdict_task, tasks))
+    return [next(said) if check else Verdict.KEPT for check in checked]
+
+
+def _clock_verdict_task(task: tuple) -> Verdict:
+    """``decisions.clock_verdict`` of one placement's arguments (in a worker process)."""
+    return clock_verdict(*task)
 
 
 def judged(result: Result, placed: list[Placement], options: Options, *, checked: bool
