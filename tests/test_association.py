@@ -22,6 +22,7 @@ from dloe_sfm.core.options import Options
 from dloe_sfm.core.pipeline import finish_single, initial_events, solve_single
 from dloe_sfm.core.problem import initialise
 from dloe_sfm.core.solver import reconstruct
+from dloe_sfm.errors import InputError
 from dloe_sfm.keypoints import load_layout, read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.synth import SimulationSettings, load_mocap
@@ -84,6 +85,8 @@ def test_a_subject_seen_by_some_streams_does_not_split_the_event(two_people) -> 
     cap, truth = two_people
     merged = aggregate(seen_by_two_streams(cap), truth)
     assert merged.subjects == 2 and merged.subset(np.arange(5)).subjects == 2
+    with pytest.raises(InputError, match="field 'subjects' must divide the 56 points, got 3"):
+        replace(merged, subjects=3).validate("merged")
     options = Options()
     X0 = initialise(merged, options)
     X0[cap.stream_ids >= 2, cap.num_points:] += 0.2

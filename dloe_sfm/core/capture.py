@@ -205,6 +205,9 @@ class Capture:
                     f"{source}: field '{name}' must hold integers within +-{INDEX_LIMIT}, "
                     f"got {arr[i]} for image {self._name(i)}"
                 )
+        if not 1 <= self.subjects <= p or p % self.subjects:
+            raise InputError(f"{source}: field 'subjects' must divide the {p} points, got "
+                             f"{self.subjects}")
         pairs = self.symmetric_pairs
         if pairs is not None and pairs.size and (
             (pairs < 0).any() or (pairs >= p).any() or (pairs[:, 0] == pairs[:, 1]).any()
