@@ -74,7 +74,8 @@ def _pid(_: int) -> int:
 
 def test_kept_workers_serve_every_parallel_step_and_end_after(log_lines):
     """Inside ``kept_workers`` the processes ``map_in_processes`` starts serve its next calls
-    and end on leaving; outside, each call starts its own. What a task logs is logged here."""
+    and end on leaving; outside, each call starts its own; with one worker, the tasks run
+    here. What a task logs is logged here."""
     with kept_workers():
         first = list(map_in_processes(_pid, range(4), 2))
         again = list(map_in_processes(_pid, range(4), 2))
@@ -83,6 +84,7 @@ def test_kept_workers_serve_every_parallel_step_and_end_after(log_lines):
     assert parallel._kept is None and all(p._shutdown_thread for p in pools)
     assert log_lines == ["task in a worker"] * 8
     assert not set(map_in_processes(_pid, range(2), 2)) & set(first)
+    assert set(map_in_processes(_pid, range(2), 1)) == {os.getpid()}  # one: here
 
 
 def test_windows_need_videos(assets_dir):

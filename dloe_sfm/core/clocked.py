@@ -144,8 +144,7 @@ def placements(
                                   auto_noise, offsets))
     slots = sum(task.idx.size for task in tasks) * capture.num_points
     workers = worker_count(options.workers, len(tasks), slots)
-    placed = (map_in_processes(place_event, tasks, workers) if workers > 1
-              else map(place_event, tasks))
+    placed = map_in_processes(place_event, tasks, workers)
     return [p for p in placed if p is not None]
 
 
@@ -280,8 +279,7 @@ def verdicts(placed: list[Placement], options: Options, result: Result) -> list[
              for p, check in zip(placed, checked, strict=True) if check]
     slots = sum(task[0].num_images for task in tasks) * result.X.shape[1]
     workers = worker_count(options.workers, len(tasks), slots)
-    said = iter(map_in_processes(_clock_verdict_task, tasks, workers) if workers > 1
-                else map(_clock_verdict_task, tasks))
+    said = map_in_processes(_clock_verdict_task, tasks, workers)
     return [next(said) if check else Verdict.KEPT for check in checked]
 
 

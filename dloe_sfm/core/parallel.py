@@ -76,8 +76,11 @@ def kept_workers() -> Iterator[None]:
 
 def map_in_processes(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
     """``fn`` over ``items`` in ``workers`` spawned single-threaded processes (results in order;
-    ``fn`` a module-level function and items picklable). The first exception raised by a task
-    is raised here."""
+    ``fn`` a module-level function and items picklable), or here with fewer than two. The first
+    exception raised by a task is raised here."""
+    if workers < 2:
+        yield from map(fn, items)
+        return
     level = logging.getLogger("dloe_sfm").getEffectiveLevel()
     kept = _kept is not None
     pool = _kept.get(workers) if kept else None

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sp
@@ -95,8 +96,7 @@ def solve_windowed(
     tasks = [(capture.subset(idx), options) for idx in windows]
     if mapper is None:
         workers = worker_count(options.workers, len(tasks), n * capture.num_points)
-        mapper = ((lambda fn, items: map_in_processes(fn, items, workers)) if workers > 1
-                  else map)
+        mapper = partial(map_in_processes, workers=workers)
     results = list(mapper(_solve_window, tasks))
     return stitch(capture, windows, home, results, t0, time.perf_counter() - started)
 
