@@ -95,6 +95,12 @@ def evaluate(
         raise InputError(f"result X has shape {X.shape}, the capture's X_true {X_true.shape}")
     out.update(point_errors(X, X_true, vis))
     out["kendall_tau"] = kendall_tau(result.order, t_true)
+    ambiguous = result.order_ambiguous
+    if ambiguous is not None and ambiguous.any() and (~ambiguous).sum() >= 2:
+        # issue 38: the order of the images whose place the solve could pin down
+        rest = result.rank[~ambiguous]
+        out["kendall_tau_unambiguous"] = kendall_tau(np.argsort(rest), t_true[~ambiguous])
+    out["order_ambiguous"] = 0 if ambiguous is None else int(ambiguous.sum())
     if truth.events is not None and result.events.size:
         true_events, found = truth.events, result.events
         majority = sum(np.bincount(true_events[found == e]).max() for e in np.unique(found))

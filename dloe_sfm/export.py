@@ -249,6 +249,8 @@ def _image_report(capture: Capture, result: Result) -> dict:
         return {}
     names = capture.image_names
     sd = np.where(capture.visible, result.depth_sd, np.nan)
+    ambiguous = (np.zeros(result.order.size, dtype=bool) if result.order_ambiguous is None
+                 else result.order_ambiguous)
     images = {}
     for i in result.order:
         row = sd[i][np.isfinite(sd[i])]
@@ -259,12 +261,15 @@ def _image_report(capture: Capture, result: Result) -> dict:
             "neighbour_deviation": float(result.neighbour_deviation[i]),
             "depth_sd_median": float(np.median(row)) if row.size else None,
             "unsupported_points": int((~result.supported[i]).sum()),
+            "order_ambiguous": bool(ambiguous[i]),
         }
     status, counts = np.unique(result.image_status, return_counts=True)
     flagged = result.image_status != "ok"
     return {"image_status": {"counts": dict(zip(status.tolist(), counts.tolist(), strict=True)),
                              "flagged": [str(names[i]) for i in result.order if flagged[i]],
-                             "unsupported_points": int((~result.supported).sum())},
+                             "unsupported_points": int((~result.supported).sum()),
+                             "order_ambiguous": [str(names[i]) for i in result.order
+                                                 if ambiguous[i]]},
             "image_checks": images}
 
 

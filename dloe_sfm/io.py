@@ -250,7 +250,8 @@ _TEXT_KEYS = ("image_status", "status_reason")
 RESULT_KEYS = ("X", "order", "A_data", "A_indices", "A_indptr", "W_data", "W_indices",
                "W_indptr", "D", "events", "embedding", "cost_history", "change_history",
                "seconds", "subject_id", "point_id", "assignment", "outliers", "swaps",
-               "outlier_residual_px", "offset_px", "clock", "clock_dropped", *CHECK_KEYS)
+               "outlier_residual_px", "offset_px", "clock", "clock_dropped", "order_ambiguous",
+               *CHECK_KEYS)
 """Keys of a result file that are read (``result_arrays``); others are skipped."""
 _REAL = "biuf"  # bool, signed / unsigned integers, floats: no objects, strings or complex
 _KIND_NAMES = {"b": "bool", "i": "integers", "u": "unsigned integers", "f": "floats",
@@ -506,7 +507,8 @@ def result_arrays(result: Result) -> dict[str, np.ndarray]:
         },
         **({"outlier_residual_px": result.outlier_residual_px} if result.outliers.size else {}),
         **({} if result.offset_px is None else {"offset_px": result.offset_px}),
-        **{k: v for k in ("clock", "clock_dropped") if (v := getattr(result, k)) is not None},
+        **{k: v for k in ("clock", "clock_dropped", "order_ambiguous")
+           if (v := getattr(result, k)) is not None},
         **({} if result.image_status is None else
            {k: np.asarray(getattr(result, k)).astype(str) if k in _TEXT_KEYS
             else np.asarray(getattr(result, k)) for k in CHECK_KEYS}),
@@ -548,7 +550,8 @@ def load_result(path: Path | str) -> Result:
         expected = {"order": (n,), "events": (n,), "A_indptr": (n + 1,), "W_indptr": (n + 1,),
                     **{k: (n,) for k in CHECK_KEYS[:4]},
                     **{k: tuple(X_shape[:2]) for k in CHECK_KEYS[4:]},
-                    "offset_px": (*X_shape[:2], 2), "clock": (n,), "clock_dropped": (n,)}
+                    "offset_px": (*X_shape[:2], 2), "clock": (n,), "clock_dropped": (n,),
+                    "order_ambiguous": (n,)}
         for k in keys:
             shape = npz._headers[k][0]
             if k in expected and shape != expected[k]:
@@ -581,10 +584,11 @@ def load_result(path: Path | str) -> Result:
     empty = np.zeros(0)
     optional = {k: out[k] for k in ("subject_id", "point_id", "assignment", "outliers", "swaps",
                                     "outlier_residual_px", "offset_px", "clock",
-                                    "clock_dropped", *CHECK_KEYS)
+                                    "clock_dropped", "order_ambiguous", *CHECK_KEYS)
                 if k in out}
-    if "supported" in optional:
-        optional["supported"] = optional["supported"].astype(bool)
+    for k in ("supported", "order_ambiguous"):
+        if k in optional:
+            optional[k] = optional[k].astype(bool)
     return Result(
         X=out["X"], order=out["order"], A=out["A"], W=out.get("W", sp.csr_matrix((n, n))),
         D=out.get("D", empty), events=out.get("events", np.zeros(0, dtype=np.int64)),

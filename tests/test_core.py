@@ -577,14 +577,15 @@ def test_noisy_lone_photos_are_ordered_along_the_geodesic_line(assets_dir):
 def test_events_of_lone_photos_follow_their_shapes(assets_dir):
     """Lone photos of one jump cut in three events, the middle third first: the events are put
     in the order of their shapes' line and turned along it, so the whole order is the time
-    order (concatenated as numbered, |tau| is about 0.6 whichever way each runs)."""
+    order (concatenated as numbered, |tau| is about 0.6 whichever way each runs); the motion
+    runs on across both cuts, so they are reported as the one event they are."""
     seq = load_mocap(assets_dir / "mocap" / "jumping_1.npz")
     cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=150, duration=2.0,
                                                   seed=1))
     thirds = np.searchsorted(np.quantile(truth.t, [1 / 3, 2 / 3]), truth.t)
     labels = np.array([1, 0, 2])[thirds]
     r = solve_events(cap, Options(), labels, initialise(cap, Options()))
-    np.testing.assert_array_equal(r.events, labels)
+    assert not r.events.any()
     assert kendall_tau(r.order, truth.t) >= 0.99
 
 

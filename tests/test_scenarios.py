@@ -11,7 +11,7 @@ from dloe_sfm.core.capture import Capture, project
 from dloe_sfm.core.clocked import robust_on_clocks
 from dloe_sfm.core.clocks import time_chain
 from dloe_sfm.core.decisions import MOST_OF_AN_IMAGE, spare_mispredicted
-from dloe_sfm.core.events import join_touching, segment_events, stream_runs
+from dloe_sfm.core.events import join_touching, runs_on, segment_events, stream_runs
 from dloe_sfm.core.multitarget import constrained_merging
 from dloe_sfm.core.options import Options, RobustLoss
 from dloe_sfm.core.problem import build_problem, initialise, normalise
@@ -166,6 +166,22 @@ def test_a_still_start_is_no_event_of_its_own_but_a_gap_is(clips):
     np.testing.assert_array_equal(
         join_touching(vstill.astype(int), stream_runs(video.stream, video.frame), vtruth.X),
         vstill.astype(int))
+
+
+def test_a_motion_runs_on_across_any_cut_but_not_across_a_gap(clips):
+    """300 lone photos of a walk and of a jump at random instants of 3 s, their true shapes in
+    time order: cut anywhere, the motion runs on across the junction (the largest random
+    spacing and a fast limb included); with the second second left out, the first and the last
+    second are a gap in which the motion went on."""
+    for name in ("walking_1", "jumping_1"):
+        cap, truth = simulate(clips[name], SimulationSettings(num_streams=0, lone_photos=300,
+                                                              duration=3.0, seed=0))
+        order = np.argsort(truth.t)
+        spacing = np.diff(truth.t[order])
+        cuts = [*range(20, 300, 20), int(np.argmax(spacing)) + 1]
+        assert all(runs_on(truth.X, order[:k], order[k:], 300) for k in cuts)
+        first, last = order[truth.t[order] < 1.0], order[truth.t[order] > 2.0]
+        assert not runs_on(truth.X, first, last, first.size + last.size)
 
 
 def test_find_swaps_on_an_exact_prediction(rng, clips):

@@ -15,9 +15,10 @@ import scipy.sparse as sp
 
 from .capture import Capture
 from .embedding import line_embedding, mds_embedding, shape_embedding
-from .events import without_videos
+from .events import SHORT_RUN, without_videos
 from .options import Distance, Embedding, Options
 from .problem import Normalised
+from .rayplace import place_by_rays
 from .robust import residuals_px
 from .sequencing import (
     MDS_SAMPLE,
@@ -25,6 +26,7 @@ from .sequencing import (
     distance_matrix,
     orient,
     place_on_streams,
+    stream_members,
 )
 from .steps import Problem, d_step, full_weights, temporal_ends, total_cost
 from .wstep import select_candidates, w_step
@@ -56,7 +58,7 @@ def sequence(
     """(prior embedding in length units, line embedding) of X, oriented by the streams.
 
     With the ``affine`` embedding and no two videos (``events.without_videos``), both are the
-    shapes' line (``embedding.shape_embedding``); with video
+    shapes' line with the lone photos placed by their rays (:func:`lone_line`); with video
     streams, both come from the streams' affine clocks
     (the prior rescaled to the MDS embedding's length units, which the T term needs; that scale
     is measured on at most ``MDS_SAMPLE`` images spread over the capture, so no N x N table is
@@ -64,8 +66,7 @@ def sequence(
     the order with ``options.embedding``.
     """
     if options.embedding is Embedding.AFFINE and without_videos(prob.streams):
-        # no two videos (lone photos, bursts): the shapes alone order the images
-        f = orient(shape_embedding(X), prob.streams, frames)
+        f, _ = lone_line(X, prob, frames)
         return f, f
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
     placement = place_on_streams(X, prob.streams, frames) if needs_dtw else None
@@ -83,6 +84,21 @@ def sequence(
         return mds, mds
     kind = Embedding.SHP if options.embedding is Embedding.AFFINE else options.embedding
     return mds, orient(line_embedding(Z, kind), prob.streams, frames)
+
+
+def lone_line(
+    X: np.ndarray, prob: Problem, frames: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(line embedding, order ambiguous) of images with no two videos (lone photos, bursts):
+    the shapes' line (``embedding.shape_embedding``, oriented by the bursts), each lone photo
+    then placed on it by its own rays and every burst (at most ``events.SHORT_RUN`` frames) by
+    its frames' rays, in their order (``rayplace.place_by_rays``; which lone photos fit
+    another time as well)."""
+    f = orient(shape_embedding(X), prob.streams, frames)
+    size = np.bincount(prob.streams)[prob.streams]
+    bursts = [idx for idx in stream_members(prob.streams, frames)
+              if 2 <= idx.size <= SHORT_RUN]
+    return place_by_rays(X, prob.rays, prob.C, prob.visible, f, size == 1, bursts)
 
 
 @dataclass(frozen=True)

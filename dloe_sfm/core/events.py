@@ -23,6 +23,9 @@ an event ended: events made of them alone are split only where the shapes jump
 TOUCH_STEPS = 3.0
 """Two such events whose closest shapes are within this many typical steps (median distance of
 an image to its nearest shape) of each other are one motion: they are joined."""
+JUNCTION_IMAGES = 10
+"""Images at either side of a junction between two solved events of lone photos compared by
+:func:`runs_on`."""
 
 
 def without_videos(streams: np.ndarray) -> bool:
@@ -171,6 +174,29 @@ def join_touching(labels: np.ndarray, runs: np.ndarray, X: np.ndarray) -> np.nda
                 break
         if not joined:
             return labels
+
+
+def runs_on(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> bool:
+    """Whether the motion runs on from the images ``before`` (indices, in time order) to the
+    images ``after`` (ditto), two events of lone photos and bursts solved apart: the closest
+    shapes ``X`` (N, ...) across the junction no farther apart than the steps between
+    consecutive shapes at the two ends allow when a continuous motion is photographed at ``n``
+    random instants.
+
+    At ``n`` random instants the largest of the spacings is about ln n mean spacings and their
+    median ln 2 of one; twice that ratio allows for the motion's speed changing across the
+    junction and for the shapes' noise. A cut through a continuous motion (where a fast part
+    leaves a wide step) stays within it; a time gap in which the motion went on does not
+    (docs/method.md, "Events of lone photos").
+    """
+    F = X.reshape(X.shape[0], -1)
+    a, b = F[before[-JUNCTION_IMAGES:]], F[after[:JUNCTION_IMAGES]]
+    steps = np.concatenate([np.linalg.norm(np.diff(a, axis=0), axis=1),
+                            np.linalg.norm(np.diff(b, axis=0), axis=1)])
+    if not steps.size:
+        return False
+    gap = float(np.sqrt(((a[:, None] - b[None]) ** 2).sum(axis=2).min()))
+    return gap <= 2.0 * np.log(max(n, 2)) / np.log(2.0) * float(np.median(steps))
 
 
 def segment_events(

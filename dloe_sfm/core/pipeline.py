@@ -23,6 +23,7 @@ from .alternation import (
     alternate,
     degrees,
     discrepancy,
+    lone_line,
     sequence,
     soft_ray_weight,
 )
@@ -38,9 +39,9 @@ from .decisions import (
     spare_mispredicted,
 )
 from .embedding import shape_embedding
-from .events import segment_events, without_videos
+from .events import runs_on, segment_events, without_videos
 from .noise import estimate_noise_px, residual_floor_px
-from .options import AUTO, Clocks, Options, RobustLoss
+from .options import AUTO, Clocks, Embedding, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
 from .result import Result, merged_history
@@ -194,6 +195,7 @@ def solve_events(
     X = np.empty((n, p, 3))
     embedding = np.empty(n)
     D = np.empty(n)
+    ambiguous = np.zeros(n, dtype=bool)
     A_parts, W_parts, order, results = [], [], [], []
     offset = 0.0
     events = [np.flatnonzero(labels == e) for e in range(int(labels.max()) + 1)]
@@ -212,10 +214,13 @@ def solve_events(
             progress(r.nit, r.nit, {"cost": r.cost_history[-1], "change": r.change_history[-1]})
         results.append(r)
         X[idx], D[idx] = r.X, r.D
+        if r.order_ambiguous is not None:
+            ambiguous[idx] = r.order_ambiguous
         A_parts.append(parts(r.A, idx))
         W_parts.append(parts(r.W, idx))
     sequence, flips = range(len(events)), [False] * len(events)
-    if without_videos(capture.stream_ids):
+    lone = without_videos(capture.stream_ids)
+    if lone:
         sequence, flips = events_along_shapes(capture, X, events, results)
     for e in sequence:
         idx, r = events[e], results[e]
@@ -223,6 +228,8 @@ def solve_events(
         embedding[idx] = f - f.min() + offset
         offset = embedding[idx].max() + 1.0
         order.append(idx[r.order[::-1] if flips[e] else r.order])
+    if lone:
+        labels = joined_where_running_on(X, labels, list(sequence), order)
     return Result(
         X=X,
         order=np.concatenate(order),
@@ -233,6 +240,7 @@ def solve_events(
         embedding=embedding,
         seconds=sum(r.seconds for r in results),
         scale=results[0].scale,
+        order_ambiguous=ambiguous,
         **merged_history(results, "event"),
     )
 
@@ -255,6 +263,28 @@ def events_along_shapes(
         logger.info("events of lone photos ordered along their shapes: %s",
                     ", ".join(f"{e}{' (reversed)' if flips[e] else ''}" for e in sequence))
     return sequence, flips
+
+
+def joined_where_running_on(
+    X: np.ndarray, labels: np.ndarray, sequence: list[int], order: list[np.ndarray]
+) -> np.ndarray:
+    """``labels`` with every two events of lone photos and bursts that follow one another on the
+    line (``sequence``, each event's images in ``order``) made one where the motion runs on
+    across their junction (``events.runs_on``): solved apart, reported as the one event they
+    are. Numbered by their first image, as ``segment_events`` numbers them."""
+    out = labels.copy()
+    joined = []
+    for k in range(1, len(sequence)):
+        if runs_on(X, order[k - 1], order[k], labels.size):
+            out[out == sequence[k]] = out[order[k - 1][0]]
+            joined.append((sequence[k - 1], sequence[k]))
+    if joined:
+        logger.info("events of lone photos one motion across their junction, reported as one: "
+                    "%s", ", ".join(f"{a}+{b}" for a, b in joined))
+    _, first = np.unique(out, return_index=True)
+    remap = np.empty(out.max() + 1, dtype=np.int64)
+    remap[out[np.sort(first)]] = np.arange(first.size)
+    return remap[out]
 
 
 def _solve_event_task(task: tuple[Capture, Options, np.ndarray | None]) -> Result:
@@ -327,7 +357,11 @@ def solve_event(
         progress(st.total, st.total, {"cost": st.costs[-1], "change": st.changes[-1]})
     best = st.best
     t0 = time.perf_counter()
-    _, f = sequence(best.X, prob, capture.frame, options, final=True)
+    if options.embedding is Embedding.AFFINE and without_videos(prob.streams):
+        f, ambiguous = lone_line(best.X, prob, capture.frame)
+    else:
+        _, f = sequence(best.X, prob, capture.frame, options, final=True)
+        ambiguous = np.zeros(f.size, dtype=bool)
     st.timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(best.D) @ best.W)
     return Result(
@@ -347,6 +381,7 @@ def solve_event(
         timings=st.timings,
         scale=norm.scale,
         noise_px=float(options.noise_px),
+        order_ambiguous=ambiguous,
     )
 
 

@@ -91,6 +91,9 @@ class Result:
     supported : (N, P') bool or None
         Points the data support: False where unobserved and weakly determined, or in an
         ``inconsistent`` image (NaN in the exports).
+    order_ambiguous : (N,) bool or None
+        Lone photos whose rays fit another time on the line as well as their place in
+        ``order`` (a pose seen again, ``core.rayplace``): their place is a guess.
     """
 
     X: np.ndarray
@@ -125,6 +128,7 @@ class Result:
     neighbour_deviation: np.ndarray | None = None
     depth_sd: np.ndarray | None = None
     supported: np.ndarray | None = None
+    order_ambiguous: np.ndarray | None = None
 
     @property
     def rank(self) -> np.ndarray:

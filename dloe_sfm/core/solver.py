@@ -10,6 +10,8 @@ same pipeline.
 
 from __future__ import annotations
 
+import logging
+
 from .alternation import Progress
 from .assess import assess
 from .capture import Capture
@@ -20,6 +22,8 @@ from .pipeline import solve_single
 from .result import Result
 from .windows import solve_windowed
 from .xstep import BLAS
+
+logger = logging.getLogger("dloe_sfm")
 
 
 @BLAS.wrap(limits=1, user_api="blas")
@@ -46,4 +50,8 @@ def reconstruct(
             result = solve_windowed(capture, options, size, size // 10)
         else:
             result = solve_single(capture, options, progress)
+    if result.order_ambiguous is not None and result.order_ambiguous.any():
+        logger.warning("%d lone photo(s) fit another time on the line as well as their own "
+                       "place (a pose seen again): their place in the order is a guess, "
+                       "flagged order_ambiguous", int(result.order_ambiguous.sum()))
     return assess(capture, result, lambda1=options.lambda1)
