@@ -1,17 +1,19 @@
-"""Lone photos placed on the time line by their own rays (docs/method.md, "Lone photos placed by
-their rays").
+"""Lone photos and bursts placed on the time line by their own rays (docs/method.md, "Lone
+photos placed by their rays").
 
 The shapes' line (``embedding.shape_embedding``) orders images by their solved shapes alone; a
 lone photo's shape carries its detections' noise, and where the motion comes back near a pose
 its nearest shapes may lie at another time. Here the shapes, in the line's order, are smoothed
-into a curve (a Gaussian of ``CURVE_WIDTH`` places), and every lone photo is put where the
-curve best explains its own observed rays: the angle between each ray and the direction from
-the camera to the curve's point, over the point's typical angle at the photos' own places,
-capped (a wrong detection weighs no more than ``ANGLE_CAP`` typical angles), squared and summed.
-A photo is never placed by its own shape: near it, the curve is left without it. A photo whose
-best place elsewhere on the line (beyond ``FAR_PLACES``) fits within ``AMBIGUOUS_MARGIN`` of
-its best is ambiguous: the data cannot tell which of the two times it was taken at, so it keeps
-its place and is reported. Bursts and videos keep their places (their frames' order is known).
+into a curve (local linear regression with Gaussian weights of ``CURVE_WIDTH`` places), and
+every lone photo is put where the curve best explains its own observed rays: the angle between
+each ray and the direction from the camera to the curve's point, over the point's typical
+angle at the images' own places, capped (a wrong detection weighs no more than ``ANGLE_CAP``
+typical angles), squared and summed. An image is never placed by its own shape: near it, the
+curve is left without it. A lone photo whose best place elsewhere on the line (beyond
+``FAR_PLACES``) fits within ``AMBIGUOUS_MARGIN`` of its best is ambiguous: the data cannot tell
+which of the two times it was taken at, so it keeps its place and is reported. A burst moves
+as a whole, its frames to the increasing places whose misfits sum least; videos keep their
+places.
 
 Sparse in N: the curve is searched on at most ``CURVE_NODES`` nodes, then around the best node
 at every place.
@@ -167,6 +169,15 @@ def _running_argmin(v: np.ndarray) -> np.ndarray:
     return np.maximum.accumulate(np.where(new, np.arange(v.size), 0))
 
 
+def _vertex(lo: np.ndarray, mid: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The offset of the lowest point of the parabola through (-1, ``lo``), (0, ``mid``),
+    (1, ``hi``) where ``mid`` is the least, within 0.45 (0 where it is no valley)."""
+    bend = lo - 2 * mid + hi
+    with np.errstate(divide="ignore", invalid="ignore"):
+        shift = np.where(bend > 0, 0.5 * (lo - hi) / bend, 0.0)
+    return np.clip(shift, -0.45, 0.45)
+
+
 def place_by_rays(
     X: np.ndarray, rays: np.ndarray, C: np.ndarray, visible: np.ndarray, f: np.ndarray,
     lone: np.ndarray, bursts: list[np.ndarray] = (),
@@ -175,12 +186,14 @@ def place_by_rays(
     the shapes ``X`` (N, P, 3) in ``f``'s order best explains their ``rays`` (N, P, 3, unit,
     NaN = unobserved) from centres ``C`` (N, 3), and (N,) which lone photos fit as well at
     another time (left in place). Every burst of ``bursts`` (its images in frame order) moves
-    as a whole: its frames to the increasing places that fit them best together. The
-    embedding keeps ``f``'s values, handed out in the new order."""
+    as a whole: its frames to the increasing places that fit them best together (a burst with
+    a frame that sees no point stays). The embedding keeps ``f``'s values, handed out in the
+    new order."""
     n = X.shape[0]
     ambiguous = np.zeros(n, dtype=bool)
-    singles = np.flatnonzero(lone & visible.any(axis=1))
-    bursts = [b for b in bursts if b.size >= 2]
+    observed = visible.any(axis=1)
+    singles = np.flatnonzero(lone & observed)
+    bursts = [b for b in bursts if b.size >= 2 and observed[b].all()]
     idx = np.concatenate([singles, *bursts]).astype(np.int64)
     if n < 3 or not idx.size:
         return f, ambiguous
@@ -224,10 +237,17 @@ def place_by_rays(
     coarse[rows, window[rows, cols] // stride] = near_own[rows, cols]
     key = place.astype(np.float64)
 
-    # a burst: its frames at the increasing nodes that fit them best together
+    # a burst: its frames at the increasing nodes that fit them best together, each then
+    # between its node's neighbours (a parabola through three, within half a node: in order)
     start = singles.size
     for b in bursts:
-        key[b] = nodes[_monotone(coarse[start : start + b.size])] + np.arange(b.size) / b.size
+        table = coarse[start : start + b.size]
+        cols = _monotone(table)
+        rows = np.arange(b.size)
+        inner = (cols > 0) & (cols < nodes.size - 1)
+        lo = table[rows, np.maximum(cols - 1, 0)]
+        hi = table[rows, np.minimum(cols + 1, nodes.size - 1)]
+        key[b] = nodes[cols] + stride * np.where(inner, _vertex(lo, table[rows, cols], hi), 0.0)
         start += b.size
 
     # a lone photo: around its best node every place, then a parabola through three
@@ -240,10 +260,7 @@ def place_by_rays(
     fit = fine[rows, j]
     inner = (j > 0) & (j < offsets.size - 1) & (near[rows, 0] < near[rows, -1])
     lo, hi = fine[rows, np.maximum(j - 1, 0)], fine[rows, np.minimum(j + 1, offsets.size - 1)]
-    bend = lo - 2 * fit + hi
-    with np.errstate(divide="ignore", invalid="ignore"):
-        shift = np.where(inner & (bend > 0), 0.5 * (lo - hi) / bend, 0.0)
-    best = near[rows, j] + shift
+    best = near[rows, j] + np.where(inner, _vertex(lo, fit, hi), 0.0)
     far = np.abs(nodes[None, :] - best[:, None]) > max(10 * curve.width, FAR_PLACES * n)
     rival = np.where(far, coarse, np.inf).min(axis=1)
     ambiguous[singles] = rival - fit < AMBIGUOUS_MARGIN
