@@ -244,6 +244,11 @@ def segment_events(
     small = sizes < min_size
     if small.any() and not small.all():
         labels[small[labels]] = np.argmax(sizes)
+    return numbered_by_first_image(labels)
+
+
+def numbered_by_first_image(labels: np.ndarray) -> np.ndarray:
+    """``labels`` (N,) renumbered 0..E-1 in the order of each event's first image."""
     _, first = np.unique(labels, return_index=True)
     remap = np.empty(labels.max() + 1, dtype=np.int64)
     remap[labels[np.sort(first)]] = np.arange(first.size)

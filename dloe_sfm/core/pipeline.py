@@ -39,7 +39,7 @@ from .decisions import (
     spare_mispredicted,
 )
 from .embedding import shape_embedding
-from .events import runs_on, segment_events, without_videos
+from .events import numbered_by_first_image, runs_on, segment_events, without_videos
 from .noise import estimate_noise_px, residual_floor_px
 from .options import AUTO, Clocks, Embedding, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
@@ -281,10 +281,7 @@ def joined_where_running_on(
     if joined:
         logger.info("events of lone photos one motion across their junction, reported as one: "
                     "%s", ", ".join(f"{a}+{b}" for a, b in joined))
-    _, first = np.unique(out, return_index=True)
-    remap = np.empty(out.max() + 1, dtype=np.int64)
-    remap[out[np.sort(first)]] = np.arange(first.size)
-    return remap[out]
+    return numbered_by_first_image(out)
 
 
 def _solve_event_task(task: tuple[Capture, Options, np.ndarray | None]) -> Result:
