@@ -65,7 +65,7 @@ def sequence(
     made). Otherwise the loop uses classical MDS of the distances (fast) and ``final`` computes
     the order with ``options.embedding``.
     """
-    if options.embedding is Embedding.AFFINE and without_videos(prob.streams):
+    if by_shapes(prob, options):
         f, _ = lone_line(X, prob, frames)
         return f, f
     needs_dtw = options.distance is Distance.ARC or options.embedding is Embedding.AFFINE
@@ -84,6 +84,12 @@ def sequence(
         return mds, mds
     kind = Embedding.SHP if options.embedding is Embedding.AFFINE else options.embedding
     return mds, orient(line_embedding(Z, kind), prob.streams, frames)
+
+
+def by_shapes(prob: Problem, options: Options) -> bool:
+    """Whether the images are sequenced by their shapes (:func:`lone_line`): the ``affine``
+    embedding and no two videos (``events.without_videos``)."""
+    return options.embedding is Embedding.AFFINE and without_videos(prob.streams)
 
 
 def lone_line(

@@ -21,6 +21,7 @@ from .alternation import (
     Progress,
     Search,
     alternate,
+    by_shapes,
     degrees,
     discrepancy,
     lone_line,
@@ -41,7 +42,7 @@ from .decisions import (
 from .embedding import shape_embedding
 from .events import numbered_by_first_image, runs_on, segment_events, without_videos
 from .noise import estimate_noise_px, residual_floor_px
-from .options import AUTO, Clocks, Embedding, Options, RobustLoss
+from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
 from .problem import assemble, initialise, normalise, parts
 from .result import Result, merged_history
@@ -354,7 +355,7 @@ def solve_event(
         progress(st.total, st.total, {"cost": st.costs[-1], "change": st.changes[-1]})
     best = st.best
     t0 = time.perf_counter()
-    if options.embedding is Embedding.AFFINE and without_videos(prob.streams):
+    if by_shapes(prob, options):
         f, ambiguous = lone_line(best.X, prob, capture.frame)
     else:
         _, f = sequence(best.X, prob, capture.frame, options, final=True)
