@@ -24,9 +24,10 @@ BAND_WIDTH = 128
 """The X-step factors a system of m unknowns as a band up to a bandwidth of
 ``max(BAND_WIDTH, sqrt(m))`` (at most O(m^2) operations), or wider where the band's work m b^2 is
 at most :data:`BAND_WORK`; the others by SuperLU (:func:`x_step`)."""
-BAND_WORK = 2**25
-"""Largest m b^2 of a band wider than ``BAND_WIDTH`` the X-step still factors as a band: a few
-milliseconds of LAPACK, less than SuperLU takes on those systems (docs/method.md, "Speed")."""
+BAND_WORK = 2**29
+"""Largest m b^2 of a band wider than ``BAND_WIDTH`` the X-step still factors as a band: at most
+tens of milliseconds of LAPACK, less than SuperLU takes on those systems, whose long edges
+fill in its factors (docs/method.md, "Speed")."""
 BATCH = 2**20
 """With hard rays the X-step solves the points in groups of about this many of Q's entries over
 all of them (:func:`_hard_points`: one factorisation per group, memory bounded at any size)."""
