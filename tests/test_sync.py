@@ -14,10 +14,11 @@ from dloe_sfm import reconstruct
 from dloe_sfm.cli import main as cli_main
 from dloe_sfm.core.clocked import Placement, on_clocks, outlier_arrays
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.sync import capture_fps, check_fps, with_fps
+from dloe_sfm.core.sync import capture_fps, check_fps, stream_clocks, with_fps
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import export_outputs
 from dloe_sfm.io import load_capture, load_result, save_capture, save_result
+from dloe_sfm.mocap_export import _rank_times
 from dloe_sfm.stages.sync import parse_fps
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
@@ -72,6 +73,39 @@ def test_offsets_match_the_truth_within_a_tenth_of_a_frame_and_three_sigma(solve
         assert abs(clock["implied_fps"] - RATES[int(name)]) < 3 * RATES[ref] * clock["rate_sd"]
         assert clock["fps_consistent"] and clock["fps_deviation_sd"] < 3, (name, clock)
     assert event["base"] in ("clock", "affine embedding")
+
+
+def test_rank_times_give_bursts_an_honest_uncertainty(assets_dir):
+    """Lone photos and bursts of 2-5 frames at random instants, in their true order: the rank
+    base times them evenly between the reference burst's frames, and each other burst's
+    offset comes with a standard uncertainty none of them lacks (a burst of two frames fits its
+    line exactly) that covers the truth nearly as a normal one would (68 % within one, 95 %
+    within two): over these 10 captures' 120 bursts 72 % and 91 % (bursts cluster images in
+    time, more than the random instants the uncertainty assumes)."""
+    motion, z = load_mocap(assets_dir / "mocap" / "walking_1.npz"), []
+    for seed in range(10):
+        sim = simulate(motion, SimulationSettings(
+            duration=3.0, num_streams=0, lone_photos=40, bursts=13, seed=seed))
+        capture, t_true = sim.capture, sim.truth.t
+        order = np.argsort(t_true)
+        ids, frames = capture.stream_ids, capture.frame
+        counts = {int(s): int((ids == s).sum()) for s in np.unique(ids[capture.stream >= 0])}
+        ref = max(counts, key=lambda s: (counts[s], -s))
+        time = np.empty(t_true.size)
+        time[order] = _rank_times(ids[order], frames[order], ref)
+        event = {"event": 0, "base": "rank", "clocks_dropped": False, "reference_stream": ref}
+        clocks = stream_clocks(capture, np.zeros(t_true.size, dtype=np.int64), time, [event])
+        true_line = {s: np.polyfit(frames[ids == s], t_true[ids == s], 1) for s in counts}
+        period, start = true_line[ref]  # s per frame, s
+        for s, clock in clocks[0]["streams"].items():
+            if s != ref:
+                assert clock["offset_sd"] > 0 and clock["rate_sd"] > 0, (seed, s, clock)
+                z.append((clock["offset"] - (true_line[s][1] - start) / period)
+                         / clock["offset_sd"])
+    z = np.abs(np.array(z))
+    assert z.size >= 100
+    assert 0.6 <= np.mean(z <= 1) <= 0.85 and np.mean(z <= 2) >= 0.88, (np.mean(z <= 1),
+                                                                         np.mean(z <= 2))
 
 
 def test_the_captures_frame_rates_give_seconds_without_fps(walking, solved, tmp_path):

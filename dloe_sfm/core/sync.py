@@ -16,8 +16,12 @@ the outer product of the Gauss-Newton step each spacing alone would take from th
 spline model's own error, which dominates on clean data). It is local: a fit caught in a wrong
 minimum keeps a small one. Where the clock fit held the rates at the known frame rates' ratios,
 ``J`` is in the offsets alone and the rates carry no uncertainty (``rate_held``). With base
-``rank`` the times are not on lines: ordinary least squares of the times on the frames, with its
-standard errors.
+``rank`` the times are not on lines: ordinary least squares of the times on the frames. Their
+uncertainty (:func:`_rank_sd`) adds two variances of the times: the residual variance pooled
+over the event's streams (a burst of two or three frames has no scatter of its own, or one
+degree of freedom of it), and how far times drawn at random over the event fall from the even
+places the rank base gives them (order statistics); an offset or rate relative to the
+reference carries the reference line's uncertainty too.
 """
 
 from __future__ import annotations
@@ -44,21 +48,78 @@ which its clock matches them whatever the uncertainty (a miss too small to matte
 
 
 def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
-           videos: list[int]) -> dict[int, tuple[float, float, float, float]]:
-    """Per stream: OLS ``(offset, rate, offset_sd, rate_sd)`` of ``t`` on its frames (standard
-    errors from the scatter; 0 with two images)."""
+           videos: list[int]) -> dict[int, tuple[float, float, float, np.ndarray]]:
+    """Per stream: the OLS line of ``t`` on its frames, ``(offset, rate, residual sum of
+    squares, (A^T A)^-1 A^T)`` (A the design matrix, columns 1 and the frames; the last maps
+    the stream's times, in index order, to its offset and rate)."""
     lines = {}
     for s in videos:
         m = streams == s
-        f, y = frames[m].astype(np.float64), t[m]
-        A = np.stack([np.ones(f.size), f], axis=1)
-        coef, *_ = np.linalg.lstsq(A, y, rcond=None)
-        dof = f.size - 2
-        var = float(((y - A @ coef) ** 2).sum() / dof) if dof > 0 else 0.0
-        cov = var * np.linalg.inv(A.T @ A)
-        lines[s] = (float(coef[0]), float(coef[1]), float(np.sqrt(cov[0, 0])),
-                    float(np.sqrt(cov[1, 1])))
+        A = np.stack([np.ones(int(m.sum())), frames[m].astype(np.float64)], axis=1)
+        fit = np.linalg.pinv(A)
+        coef = fit @ t[m]
+        lines[s] = (float(coef[0]), float(coef[1]), float(((t[m] - A @ coef) ** 2).sum()), fit)
     return lines
+
+
+def _rank_sd(lines: dict, t: np.ndarray, streams: np.ndarray,
+             ref: int) -> dict[int, tuple[float, float]]:
+    """Per stream of ``lines`` (:func:`_lines` of the rank base's times ``t``,
+    ``mocap_export.rank_times``) but ``ref``: (offset_sd, rate_sd) of its line relative to the
+    reference's, from two variances of the times (module docstring): the lines' residual
+    variance pooled over all the lines (at least that of a time rounded to the step between
+    consecutive times, step^2 / 12), and where times drawn at random fall about the even places
+    the rank base gives them (:func:`_placement_variance`)."""
+    rss = sum(line[2] for line in lines.values())
+    dof = sum(int((streams == s).sum()) - 2 for s in lines)
+    step = float(np.median(np.diff(np.sort(t)))) if t.size > 1 else 0.0
+    var = max(rss / dof if dof else 0.0, step * step / 12.0)
+    order = np.argsort(t, kind="stable")
+    rank = np.empty(t.size, dtype=np.int64)
+    rank[order] = np.arange(t.size)
+    at_ref = np.flatnonzero(streams[order] == ref)
+    ref_fit = lines[ref][3]
+    out = {}
+    for s, (_, rate, _, fit) in lines.items():
+        if s != ref:
+            sd = [np.sqrt(var * float(w @ w + own @ own)
+                          + _placement_variance(rank[streams == s], w, at_ref, t[order][at_ref]))
+                  for w, own in ((fit[0], ref_fit[0]), (fit[1], rate * ref_fit[1]))]
+            out[s] = (float(sd[0]), float(sd[1]))
+    return out
+
+
+def _placement_variance(rank: np.ndarray, w: np.ndarray, at_ref: np.ndarray,
+                        ref_time: np.ndarray) -> float:
+    """Variance of ``w . (true - even times)`` of images at ``rank`` (in the order of ``w``)
+    where the rank base puts the reference's images (ranks ``at_ref``) at their times
+    ``ref_time`` and the others evenly in between, if every other image was taken at a random
+    instant (a Poisson process): the m images between two reference frames L apart are m
+    uniform times there (covariance L^2 (min(p_a, p_b) - p_a p_b) / (m + 2), p = j / (m + 1)
+    for the j-th); beyond the first or last frame the rank base steps on by the reference
+    span's mean step s over its K ranks, so the j-th image out is j steps of exponential length
+    s away (covariance s^2 min(j_a, j_b)) and the step itself is off by about s / sqrt(K), for
+    every image out at once (covariance +-j_a j_b s^2 / K, the sign + on the same side)."""
+    gap = np.searchsorted(at_ref, rank)  # 0: before the first reference frame
+    span = int(at_ref[-1] - at_ref[0])
+    step = float(ref_time[-1] - ref_time[0]) / span
+    total, outward = 0.0, 0.0
+    for g in np.unique(gap):
+        mine = gap == g
+        if g == 0 or g == at_ref.size:
+            x = np.abs(rank[mine] - at_ref[0 if g == 0 else -1]).astype(np.float64)
+            scale, centred = step * step, 0.0
+            outward += (1.0 if g else -1.0) * float(w[mine] @ x)
+        else:
+            m = at_ref[g] - at_ref[g - 1] - 1
+            x = (rank[mine] - at_ref[g - 1]) / (m + 1.0)
+            scale = (ref_time[g] - ref_time[g - 1]) ** 2 / (m + 2.0)
+            centred = float(w[mine] @ x) ** 2
+        # sum over pairs of w_a w_b min(x_a, x_b): increments of x times the squared tail sums
+        k = np.argsort(x)
+        tail = np.cumsum(w[mine][k][::-1])[::-1]
+        total += scale * (float(np.diff(x[k], prepend=0.0) @ tail**2) - centred)
+    return total + step * step / span * outward**2
 
 
 def _ray_covariance(capture: Capture, t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
@@ -130,17 +191,16 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         free = [s for s in videos if s != ref]
         sd = {}
         held = _held(capture, idx, lines, ref, free)
-        if summary["base"] != "rank" and free:
+        if summary["base"] == "rank":
+            sd = _rank_sd(lines, t, streams, ref)
+        elif free:
             cov = _ray_covariance(capture.subset(idx), t, streams, frames, free, held=held)
             var = np.sqrt(np.maximum(np.diag(cov), 0.0))
             sd = {s: (float(var[k]), 0.0 if held else float(var[len(free) + k]))
                   for k, s in enumerate(free)}
         for s in videos:
-            a, b, a_sd, b_sd = lines[s]
-            if s == ref:
-                a_sd = b_sd = 0.0
-            elif s in sd:
-                a_sd, b_sd = sd[s]
+            a, b = lines[s][:2]
+            a_sd, b_sd = sd.get(s, (0.0, 0.0))
             clock = {"offset": a - a_ref, "offset_sd": a_sd, "rate": b, "rate_sd": b_sd,
                      "rate_held": held and s != ref, "base": summary["base"],
                      "images": int((streams == s).sum()),
