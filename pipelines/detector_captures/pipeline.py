@@ -31,11 +31,13 @@ the chain in true time order, points pinned to their rays) and pseudo-triangulat
   ray placement (docs/method.md, "Lone photos placed by their rays"), so lone_check was made
   after them and kept out of every later choice: seed 2 of six motions no other case uses
   (walking_5, jumping_5, running_5, basketball_4, soccer_4, directing_traffic_4), each clean,
-  at 1 px and with the OpenPose detector model, 250 or 400 photos, same target.
+  at 1 px and with the OpenPose detector model, 250 or 400 photos, same target. lone_check2:
+  the same at seed 3 with the other photo count, made when lone_check had shown false events
+  and kept out of their fix as a check.
 
     python pipelines/detector_captures/pipeline.py [--data ../shared/data/mocap]
         [--out outputs/detector_captures] [--cases detector new mixed six six_missing
-        lone lone_noise lone_detector lone_new lone_check] [--jobs 2]
+        lone lone_noise lone_detector lone_new lone_check lone_check2] [--jobs 2]
 
 Writes ``OUT/detector_captures.json`` (every run's figures and the machine) and prints a line
 per run; about 25 minutes for all five cases with two jobs on 2 cores.
@@ -81,9 +83,11 @@ LONE_NEW = [(f"{m}@{noise}", s) for m, s in LONE_NEW for noise in (0, 1)]
 LONE_CHECK = [(f"{m}@{noise}:{photos}", 2) for k, m in enumerate(
     ("walking_5", "jumping_5", "running_5", "basketball_4", "soccer_4", "directing_traffic_4"))
     for j, noise in enumerate(("0", "1", "openpose")) for photos in [(250, 400)[(k + j) % 2]]]
+LONE_CHECK2 = [(f"{m.partition(':')[0]}:{650 - int(m.partition(':')[2])}", 3)
+               for m, _ in LONE_CHECK]
 CASES = {"detector": DETECTOR, "new": NEW, "mixed": MIXED, "six": SIX, "six_missing": SIX,
          "lone": LONE, "lone_noise": LONE, "lone_detector": LONE, "lone_new": LONE_NEW,
-         "lone_check": LONE_CHECK}
+         "lone_check": LONE_CHECK, "lone_check2": LONE_CHECK2}
 
 
 def settings(case: str, seed: int, variant: str = "") -> SimulationSettings:
