@@ -604,20 +604,6 @@ def test_lone_photos_from_anywhere_are_ordered_and_reconstructed(assets_dir):
     assert error <= 1.5 * oracle + 1.0
 
 
-def test_lone_photos_of_one_walk_are_one_event(assets_dir):
-    """150 lone photos of one walk (seed 5): lone photos cannot show by stopping that an event
-    ended, so they are solved as one and split only where the solved graph shows a gap. Cut
-    before the solve by the initial shapes' graph, as captures with videos are, they came out
-    as two events."""
-    seq = load_mocap(assets_dir / "mocap" / "walking_1.npz")
-    for noise in (0.0, 1.0):
-        cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=150,
-                                                      duration=2.0, seed=5, noise=noise))
-        r = reconstruct(cap, Options())
-        assert r.events.max() == 0, noise
-        assert kendall_tau(r.order, truth.t) >= 0.99
-
-
 def dense_x_step(W, D, prob, lambda1, lambda2):
     """The X-step by a dense solve per point of the same quadratic (and ridge)."""
     n, p = prob.rays.shape[:2]

@@ -199,21 +199,6 @@ def runs_on(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> boo
     return gap <= 2.0 * np.log(max(n, 2)) / np.log(2.0) * float(np.median(steps))
 
 
-def joined_along(X: np.ndarray, labels: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """``labels`` (N,) of one solve of lone photos and bursts with every two events made one
-    where their images follow one another in ``order`` (the solve's time order) and the motion
-    runs on from one to the other (:func:`runs_on` on the shapes ``X``): a graph cut through a
-    continuous motion. Numbered by their first image."""
-    out = labels.copy()
-    along = labels[order]
-    starts = np.flatnonzero(np.diff(along)) + 1
-    stretches = np.split(order, starts)
-    for a, b in zip(stretches[:-1], stretches[1:], strict=True):
-        if out[a[0]] != out[b[0]] and runs_on(X, a, b, labels.size):
-            out[out == out[b[0]]] = out[a[0]]
-    return numbered_by_first_image(out)
-
-
 def segment_events(
     A: sp.spmatrix,
     streams: np.ndarray | None = None,

@@ -40,13 +40,7 @@ from .decisions import (
     spare_mispredicted,
 )
 from .embedding import shape_embedding
-from .events import (
-    joined_along,
-    numbered_by_first_image,
-    runs_on,
-    segment_events,
-    without_videos,
-)
+from .events import numbered_by_first_image, runs_on, segment_events, without_videos
 from .noise import estimate_noise_px, residual_floor_px
 from .options import AUTO, Clocks, Options, RobustLoss
 from .parallel import map_in_processes, worker_count
@@ -73,11 +67,9 @@ def solve_single(
     """Estimate every image's 3D points and the images' temporal graph and order (one subject).
 
     With ``options.segment_events``, temporally disjoint events are found first
-    (:func:`initial_events`; for lone photos and bursts, which cannot show by stopping that an
-    event ended, after a solve as one: :func:`solve_events`) and each event is sequenced and
-    reconstructed on its own (:func:`plain_solve`). With a robust loss (or symmetric pairs to
-    check) the observations are then reweighted from the solution's residuals and the capture
-    re-solved; unless
+    (:func:`initial_events`) and each event is sequenced and reconstructed on its own
+    (:func:`plain_solve`). With a robust loss (or symmetric pairs to check) the observations are
+    then reweighted from the solution's residuals and the capture re-solved; unless
     ``options.stream_clocks`` is ``off``, every event filmed by videos is finally placed on its
     streams' fitted clocks (:func:`finish_single`)."""
     return finish_single(capture, options, *plain_solve(capture, options, progress), progress)
@@ -92,7 +84,7 @@ def plain_solve(
     started = time.perf_counter()
     X_world = initialise(capture, options)
     labels = np.zeros(capture.num_images, dtype=np.int64)
-    if options.segment_events and not without_videos(capture.stream_ids):
+    if options.segment_events:
         labels = initial_events(capture, options, X_world)
     init_seconds = time.perf_counter() - started
     result = solve_events(capture, options, labels, X_world, progress)
@@ -195,21 +187,11 @@ def solve_events(
     progress: Progress | None = None,
 ) -> Result:
     """Solve every event on its own (from ``X_world`` when given, else each initialised on its
-    own) and assemble one result (orders concatenated by event). One event: its solve as is,
-    but for lone photos and bursts (``events.without_videos``) whose solved graph separates
-    events with ``options.segment_events``: those are solved again apart. Several: in
-    ``options.workers`` processes (``core.parallel``); each reports to ``progress`` once, when
-    solved."""
-    lone = without_videos(capture.stream_ids)
+    own) and assemble one result (orders concatenated by event). One event: its solve as is.
+    Several: in ``options.workers`` processes (``core.parallel``); each reports to ``progress``
+    once, when solved."""
     if labels.max() == 0:
-        one = solve_event(capture, options, X_world, progress)
-        if not (lone and options.segment_events and one.events.max() > 0):
-            return one
-        # lone photos and bursts solved as one: where the solved graph shows a gap, the
-        # events it separates are solved apart
-        labels = one.events
-        logger.info("lone photos and bursts: the solve shows %d events; solved apart",
-                    labels.max() + 1)
+        return solve_event(capture, options, X_world, progress)
     n, p = capture.num_images, capture.num_points
     X = np.empty((n, p, 3))
     embedding = np.empty(n)
@@ -238,6 +220,7 @@ def solve_events(
         A_parts.append(parts(r.A, idx))
         W_parts.append(parts(r.W, idx))
     sequence, flips = range(len(events)), [False] * len(events)
+    lone = without_videos(capture.stream_ids)
     if lone:
         sequence, flips = events_along_shapes(capture, X, events, results)
     for e in sequence:
@@ -379,17 +362,13 @@ def solve_event(
         ambiguous = np.zeros(f.size, dtype=bool)
     st.timings["sequencing"] += time.perf_counter() - t0
     A = sp.csr_matrix(sp.diags(best.D) @ best.W)
-    order = order_from_embedding(f)
-    events = segment_events(A, capture.stream, capture.frame, shapes=best.X)
-    if by_shapes(prob, options):
-        events = joined_along(best.X, events, order)
     return Result(
         X=norm.to_world(best.X),
-        order=order,
+        order=order_from_embedding(f),
         A=A,
         W=best.W,
         D=best.D,
-        events=events,
+        events=segment_events(A, capture.stream, capture.frame, shapes=best.X),
         embedding=f * norm.scale,
         cost_history=np.array(st.costs),
         change_history=np.array(st.changes),
