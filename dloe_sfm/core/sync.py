@@ -65,7 +65,7 @@ def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
 def _rank_sd(lines: dict, t: np.ndarray, streams: np.ndarray,
              ref: int) -> dict[int, tuple[float, float]]:
     """Per stream of ``lines`` (:func:`_lines` of the rank base's times ``t``,
-    ``mocap_export.rank_times``) but ``ref``: (offset_sd, rate_sd) of its line relative to the
+    ``mocap_export._rank_times``) but ``ref``: (offset_sd, rate_sd) of its line relative to the
     reference's, from two variances of the times (module docstring): the lines' residual
     variance pooled over all the lines (at least that of a time rounded to the step between
     consecutive times, step^2 / 12), and where times drawn at random fall about the even places
