@@ -367,6 +367,34 @@ def test_stream_pairs_grow_linearly_with_the_streams():
         assert scored <= 3 * min(PARTNER_STREAMS, num - 1) * n
 
 
+def test_arc_distance_of_many_streams_pair_by_pair():
+    """Beyond the reference streams: every entry is, pair by pair, the mean over the polylines
+    of the two images' own streams that hold both of their placements' arc distance, else the
+    median over the reference polylines (computed per line on its own images' rows, never as
+    an N x N table per line)."""
+    cap, _ = ring_streams(24, frames=6)
+    X = initialise(cap, Options())
+    pl = place_on_streams(X, cap.stream_ids, cap.frame)
+    Z = arc_distance(X, cap.stream_ids, cap.frame, pl)
+    pos = pl.table(np.arange(cap.num_images))
+    line_of = np.full(cap.num_images, -1)
+    for c, idx in enumerate(pl.lines):
+        line_of[idx] = c
+
+    def entry(i: int, j: int) -> float:
+        lines = {c for c in (line_of[i], line_of[j]) if c >= 0}
+        arcs = [abs(pos[c, i] - pos[c, j]) for c in sorted(lines)
+                if np.isfinite(pos[c, i]) and np.isfinite(pos[c, j])]
+        if arcs:
+            return float(np.mean(arcs))
+        return float(np.median(np.abs(pos[pl.full, i] - pos[pl.full, j])))
+
+    rng = np.random.default_rng(0)
+    for i, j in rng.integers(0, cap.num_images, (300, 2)):
+        if i != j:
+            assert Z[i, j] == pytest.approx(0.5 * (entry(i, j) + entry(j, i)), rel=1e-12)
+
+
 def test_partner_streams_are_the_most_convergent_views():
     cap, _ = ring_streams(16, frames=3)
     members = [np.flatnonzero(cap.stream == s) for s in range(16)]

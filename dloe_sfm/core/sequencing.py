@@ -191,12 +191,16 @@ def arc_distance(
     Z = np.zeros((n, n))
     cnt = np.zeros((n, n))
     for c in range(len(pl.lines)):
-        on_c = line_of == c
+        # the pairs placed on line c with at least one image of its own stream: its images'
+        # rows, then the other placed images' rows at its images' columns
         there = np.isfinite(pos[c])
-        dc = np.abs(pos[c][:, None] - pos[c][None, :])
-        use = (on_c[:, None] | on_c[None, :]) & there[:, None] & there[None, :]
-        Z += np.where(use, dc, 0.0)
-        cnt += use
+        own = np.flatnonzero((line_of == c) & there)
+        placed = np.flatnonzero(there)
+        other = np.flatnonzero(there & (line_of != c))
+        for rows, cols in ((own, placed), (other, own)):
+            at = np.ix_(rows, cols)
+            Z[at] += np.abs(pos[c][rows][:, None] - pos[c][cols][None, :])
+            cnt[at] += 1
     neither = cnt == 0
     refs = pos[pl.full]
     step = max(1, MEDIAN_BLOCK // (refs.shape[0] * n))
