@@ -36,6 +36,7 @@ def test_plan_windows_cover_and_overlap(rng):
         plan_windows(times, 300, 300)
 
 
+@pytest.mark.slow
 def test_windowed_solve_matches_the_single_solve(assets_dir):
     cap, truth = simulate(load_mocap(assets_dir / "mocap" / "basketball_signal_1.npz"),
                           SimulationSettings(duration=2.5, seed=0, num_streams=4, rate=30.0,
