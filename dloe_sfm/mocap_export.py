@@ -2,14 +2,15 @@
 
 Time. Every image's time is first counted in frames of its event's reference stream (the
 event's video with the most images: its frame numbers, as in the file names), by the most
-faithful base the
-result holds, per event: ``clock`` (the streams' fitted affine clocks, ``Result.clock``, or
-those the held-out check dropped for the points, ``Result.clock_dropped``),
-``affine embedding`` (the embedding is the streams' affine clocks: every stream's images lie
-on a line in their frame numbers), else ``rank`` (the reference stream's images at their
-frames, the others between them evenly by estimated order; an event without a video: one
-frame per image). Events are never bridged: a later event keeps its gap to the previous one
-when both are timed by the same stream, else it is placed two of its frames after it.
+faithful base the result holds, per event: ``clock`` (the streams' fitted affine clocks,
+``Result.clock``, or those the held-out check dropped for the points,
+``Result.clock_dropped``), ``burst clock`` (an event of bursts and lone photos alone timed on
+its bursts' clocks, ``Result.clock_dropped`` from ``core.clocked.burst_times``), ``affine
+embedding`` (the embedding is the streams' affine clocks: every stream's images lie on a line
+in their frame numbers), else ``rank`` (the reference stream's images at their frames, the
+others between them evenly by estimated order; an event without a video: one frame per image).
+Events are never bridged: a later event keeps its gap to the previous one when both are timed
+by the same stream, else it is placed two of its frames after it.
 
 TRC and C3D hold the points on a uniform time grid (default: the fastest stream's rate),
 linearly interpolated between a point's observations that are at most 1.5 image periods of the
@@ -33,6 +34,8 @@ import ezc3d
 import numpy as np
 
 from .core.capture import Capture
+from .core.clocked import filmed
+from .core.clocks import rank_times
 from .core.result import Result
 from .core.sync import Fps, stream_fps
 from .errors import InputError
@@ -145,21 +148,6 @@ def _event_times(times: np.ndarray | None, idx: np.ndarray) -> np.ndarray | None
     return times[idx] if times is not None and np.isfinite(times[idx]).all() else None
 
 
-def _rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray | None:
-    """(m,) times of an event's images in estimated order: the reference stream's at their
-    frames, the others evenly between them by rank (extrapolated at the ends); None when the
-    order contradicts the reference stream's frame order."""
-    pos = np.flatnonzero(streams == ref).astype(np.float64)
-    f = frames[streams == ref].astype(np.float64)
-    if (np.diff(f) <= 0).any():
-        return None
-    slope = (f[-1] - f[0]) / (pos[-1] - pos[0])
-    rank = np.arange(streams.size, dtype=np.float64)
-    t = np.interp(rank, pos, f)
-    return np.where(rank < pos[0], f[0] - (pos[0] - rank) * slope,
-                    np.where(rank > pos[-1], f[-1] + (rank - pos[-1]) * slope, t))
-
-
 def image_times(capture: Capture, result: Result) -> Timeline:
     """Every image's time in reference frames and the export's default rate (module docstring).
 
@@ -187,9 +175,10 @@ def image_times(capture: Capture, result: Result) -> Timeline:
             u = result.embedding[idx] if clocks is None else clocks
             t = _affine_times(u, streams, frames, ref)
             if t is not None and (np.diff(t) >= -AFFINE_TOLERANCE * np.ptp(t)).all():
-                base = "affine embedding" if clocks is None else "clock"
+                base = ("affine embedding" if clocks is None
+                        else "burst clock" if kept is None and not filmed(streams) else "clock")
             else:
-                t = _rank_times(streams, frames, ref)
+                t = rank_times(streams, frames, ref)
         if t is None:
             t, ref = np.arange(idx.size, dtype=np.float64), None
             event_periods, steps = [1.0], [1.0]

@@ -13,12 +13,12 @@ import pytest
 from dloe_sfm import reconstruct
 from dloe_sfm.cli import main as cli_main
 from dloe_sfm.core.clocked import Placement, on_clocks, outlier_arrays
+from dloe_sfm.core.clocks import rank_times
 from dloe_sfm.core.options import Options
 from dloe_sfm.core.sync import capture_fps, check_fps, stream_clocks, with_fps
 from dloe_sfm.errors import InputError
 from dloe_sfm.export import export_outputs
 from dloe_sfm.io import load_capture, load_result, save_capture, save_result
-from dloe_sfm.mocap_export import _rank_times
 from dloe_sfm.stages.sync import parse_fps
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
 
@@ -92,7 +92,7 @@ def test_rank_times_give_bursts_an_honest_uncertainty(assets_dir):
         counts = {int(s): int((ids == s).sum()) for s in np.unique(ids[capture.stream >= 0])}
         ref = max(counts, key=lambda s: (counts[s], -s))
         time = np.empty(t_true.size)
-        time[order] = _rank_times(ids[order], frames[order], ref)
+        time[order] = rank_times(ids[order], frames[order], ref)
         event = {"event": 0, "base": "rank", "clocks_dropped": False, "reference_stream": ref}
         clocks = stream_clocks(capture, np.zeros(t_true.size, dtype=np.int64), time, [event])
         true_line = {s: np.polyfit(frames[ids == s], t_true[ids == s], 1) for s in counts}

@@ -17,15 +17,26 @@ import scipy.sparse as sp
 from .alternation import soft_ray_weight
 from .bias import stream_offsets, without_offsets
 from .capture import Capture
-from .clocks import REACH, chain_predicted, fit_clocks, moved_periods, time_chain
+from .clocks import (
+    REACH,
+    by_rank,
+    chain_predicted,
+    fit_burst_clocks,
+    fit_clocks,
+    moved_periods,
+    rank_times,
+    time_chain,
+)
 from .decisions import (
     Verdict,
+    burst_clocks_time,
     clock_verdict,
     clocks_checked,
     fit_trusted,
     offsets_kept,
     soft_rays_on_clocks,
 )
+from .events import without_videos
 from .options import Options
 from .parallel import map_in_processes, worker_count
 from .problem import Normalised, assemble, build_problem, normalise, parts
@@ -134,8 +145,7 @@ def placements(
     tasks = []
     for e in range(int(result.events.max()) + 1):
         idx = np.flatnonzero(result.events == e)
-        ids, counts = np.unique(capture.stream_ids[idx], return_counts=True)
-        if ids.size < 2 or counts.min() < 3:
+        if not filmed(capture.stream_ids[idx]):
             continue
         sub = capture.subset(idx) if idx.size < n else capture
         csub = None if checked is None else checked.subset(idx) if idx.size < n else checked
@@ -146,6 +156,14 @@ def placements(
     workers = worker_count(options.workers, len(tasks), slots)
     placed = map_in_processes(place_event, tasks, workers)
     return [p for p in placed if p is not None]
+
+
+def filmed(streams: np.ndarray) -> bool:
+    """Whether an event of images from ``streams`` is filmed by videos, for its clocks
+    (:func:`placements`): two or more streams, each of three or more images. The others, of
+    bursts and lone photos alone, are timed by :func:`burst_times`."""
+    _, counts = np.unique(streams, return_counts=True)
+    return counts.size >= 2 and counts.min() >= 3
 
 
 class EventToPlace(NamedTuple):
@@ -344,6 +362,62 @@ def on_clocks(result: Result, placed: list[Placement], *, checked: bool,
                          outlier_residual_px=residual[img, col])
     return replace(result, X=X, D=D, W=W, A=sp.csr_matrix(sp.diags(D) @ W), clock=clock,
                    order=order, embedding=embedding, noise_px=noise_px)
+
+
+def burst_times(capture: Capture, options: Options, result: Result) -> Result:
+    """``result`` with every event of bursts and lone photos alone (``events.without_videos``)
+    timed on its bursts' clocks (``clocks.fit_burst_clocks``) from the rank base
+    (``clocks.rank_times``; the reference, the stream of most images), its lone photos evenly
+    by rank between the bursts' images (``clocks.by_rank``: their own times, fitted, made the
+    order worse on the bundled crowd, docs/method.md, "Clocks of bursts"): the times go to
+    ``clock_dropped`` and the event's block of the order is theirs. The points stay the
+    graph's: the chain along these times places badly the images at the ends of the time line
+    and those whose neighbours in time are nearly as early (docs/method.md, "Clocks of
+    bursts"). An event needs two streams of two or more images and no clocks of its own; a fit
+    that puts a stream's frames out of their order is not taken (logged). ``capture`` is the
+    one the result was solved on."""
+    n, stream_ids = capture.num_images, capture.stream_ids
+    times = np.full(n, np.nan) if result.clock_dropped is None else result.clock_dropped.copy()
+    order, rank = result.order.copy(), result.rank
+    timed = np.isfinite(times) | (np.zeros(n, dtype=bool) if result.clock is None
+                                  else np.isfinite(result.clock))
+    changed = False
+    for e in np.unique(result.events):
+        idx = np.flatnonzero(result.events == e)
+        idx = idx[np.argsort(rank[idx], kind="stable")]
+        streams, frames = stream_ids[idx], capture.frame[idx]
+        ids, counts = np.unique(streams, return_counts=True)
+        bursts = [s for s in ids if np.unique(frames[streams == s]).size >= 2]
+        if timed[idx].any() or len(bursts) < 2 or filmed(streams) or not without_videos(streams):
+            continue
+        ref = max(bursts, key=lambda s: (counts[ids == s][0], -s))
+        t0 = rank_times(streams, frames, ref)
+        if t0 is None:
+            continue
+        burst = np.isin(streams, bursts)
+        prob = normalise(capture.subset(idx[burst]), options, result.X[idx[burst]]).problem
+        E, rhs = ray_equations(prob.rays, prob.C, prob.weights)
+        t = fit_burst_clocks(t0[burst], streams[burst], frames[burst], E, rhs, prob.visible)
+        backwards = [s for s in bursts if np.polyfit(frames[streams == s], t[streams[burst] == s],
+                                                     1)[0] <= 0]
+        if backwards:
+            logger.info("event %d: the clocks of its bursts put stream(s) %s backwards in time; "
+                        "it keeps the rank base", e, backwards)
+            continue
+        t = by_rank(burst, t)
+        sub = capture.subset(idx)
+        said = [residuals_px(sub, chain_predicted(time_chain(x)[0], x, result.X[idx]))
+                for x in (t0, t)]
+        kept = burst_clocks_time(*said)
+        logger.info("event %d: %d bursts and %d lone photo(s); held-out detections along the "
+                    "bursts' clocks %.2f px, along the rank base %.2f px (median): %s", e,
+                    len(bursts), int((counts == 1).sum()), np.nanmedian(said[1]),
+                    np.nanmedian(said[0]), "timed on the clocks" if kept else "the rank base kept")
+        if not kept:
+            continue
+        times[idx], changed = t, True
+        order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
+    return replace(result, clock_dropped=times, order=order) if changed else result
 
 
 def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:

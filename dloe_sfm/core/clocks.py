@@ -27,13 +27,14 @@ which takes the same steps without forming it.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
 from .robust import predicted
-from .splines import SplineFit, offset_columns, visible_rays
+from .splines import Rays, SplineFit, offset_columns, visible_rays
 
 SPACINGS = (2.0, 3.0, 4.0, 5.0)
 """Knot spacings in median sampling intervals of all streams merged (:func:`fit_clocks`)."""
@@ -72,6 +73,15 @@ SPAN_REACH = 10.0
 """A trial step that puts an image later than the first guess's last time plus this many times
 its span costs :data:`OUT_OF_RANGE`: its splines would need as many more knots (a step of
 Levenberg-Marquardt on six streams reached times whose knots no memory holds)."""
+
+BURST_PRIOR = 2.0
+"""Standard deviation of the prior that ties the times of bursts and lone photos to the rank
+base, in median gaps between those times (:func:`fit_burst_clocks`)..."""
+BURST_STAGES = (4.0, 2.0, 1.0, 1.0)
+"""...the knots of its stages, in multiples of the spacings (the last twice: the rays' noise
+is estimated again at the clocks of the one before)..."""
+BURST_KNOTS_BEFORE = 3.0
+"""...and how many of a stage's widest knot spacings its knots start before the first time."""
 
 
 def sampling_interval(t: np.ndarray) -> float:
@@ -283,6 +293,180 @@ def fit_clocks(
     if not held:
         x = fitted(x, np.arange(x.size), fine, everything, start, norms)
     return times(x)
+
+
+def rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray | None:
+    """(m,) times of an event's images in their estimated order (``streams``, ``frames`` in
+    that order): the reference stream ``ref``'s at their frames, the others evenly between them
+    by rank (:func:`by_rank`); None when the order contradicts the reference stream's frame
+    order. The rank base of captures without videos."""
+    f = frames[streams == ref].astype(np.float64)
+    if (np.diff(f) <= 0).any():
+        return None
+    return by_rank(streams == ref, f)
+
+
+def by_rank(known: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(m,) times of m images in their estimated order: those ``known`` (m,) at their times
+    ``t`` (in that order), the others evenly between their neighbours among them by rank, and
+    beyond the first or last on at the known images' mean step per rank."""
+    pos = np.flatnonzero(known).astype(np.float64)
+    slope = (t[-1] - t[0]) / (pos[-1] - pos[0])
+    rank = np.arange(known.size, dtype=np.float64)
+    inside = np.interp(rank, pos, t)
+    return np.where(rank < pos[0], t[0] - (pos[0] - rank) * slope,
+                    np.where(rank > pos[-1], t[-1] + (rank - pos[-1]) * slope, inside))
+
+
+def fit_burst_clocks(
+    t0: np.ndarray,
+    streams: np.ndarray,
+    frames: np.ndarray,
+    E: np.ndarray,
+    rhs: np.ndarray,
+    visible: np.ndarray,
+    *,
+    prior: float = BURST_PRIOR,
+    stages: tuple[float, ...] = BURST_STAGES,
+    spacings: tuple[float, ...] = SPACINGS,
+) -> np.ndarray:
+    """(N,) times of the images of bursts (streams of two or more images, ``streams`` /
+    ``frames``): every burst on an affine clock of its own, fitted to the rays.
+
+    ``t0`` (N,) the rank base's times (:func:`rank_times`), the rest as :func:`fit_clocks`
+    takes them. The residual is :func:`fit_clocks`'s, the points' B-spline trajectories on the
+    rays summed over ``spacings`` median gaps between the times ``t0``, over the rays' noise,
+    plus every image's time from ``t0`` over ``prior`` gaps: the rank base ties down the time
+    line's origin and scale, which the rays leave free. Levenberg-Marquardt (on the Gram matrix
+    of the Kaufman Jacobian, as :func:`fit_clocks`) on knots ``stages`` times wider in turn: on
+    the knots of the last stage alone it stops in a local minimum a burst period off. The
+    noise is the residual's RMS at ``t0``, then at every stage's clocks (docs/method.md,
+    "Clocks of bursts").
+    """
+    dt, bursts = _burst_design(streams, frames)
+    f = frames.astype(np.float64)
+    lines = np.array([np.polyfit(f[streams == s], t0[streams == s], 1) for s in bursts])
+    x = np.concatenate([lines[:, 1], lines[:, 0]])
+    gap = sampling_interval(t0)
+    rays = visible_rays(E, rhs, visible)
+
+    def noise(t: np.ndarray) -> float:
+        first = float(t.min()) - BURST_KNOTS_BEFORE * max(spacings) * gap
+        r = np.concatenate([SplineFit(t, rays, h * gap, first).res for h in spacings])
+        return max(float(np.sqrt(np.mean(r**2))), np.finfo(float).tiny)
+
+    scale = noise(t0)
+    for stage in stages:
+        hs = [stage * h * gap for h in spacings]
+        first = float(min(t0.min(), (dt @ x).min())) - BURST_KNOTS_BEFORE * max(hs)
+        x = _burst_stage(x, t0, dt, _BurstModel(rays, hs, first, scale, gap, prior * gap))
+        scale = noise(dt @ x)
+    return dt @ x
+
+
+class _BurstModel(NamedTuple):
+    """One stage of :func:`fit_burst_clocks`: the rays, the knot spacings and first knot, the
+    rays' noise, the median gap between the first-guess times (the clocks' scale) and the
+    prior's standard deviation."""
+
+    rays: Rays
+    spacings: list[float]
+    first: float
+    noise: float
+    gap: float
+    prior_sd: float
+
+
+def _burst_stage(x: np.ndarray, t0: np.ndarray, dt: np.ndarray, model: _BurstModel
+                 ) -> np.ndarray:
+    """The bursts' clocks ``x`` fitted by Levenberg-Marquardt to one stage's residual
+    (:func:`fit_burst_clocks`); ``dt`` the times' derivative in them."""
+    weight = 1.0 / (model.noise * np.sqrt(len(model.spacings)))
+    cache: dict[bytes, list[SplineFit]] = {}
+
+    def fits(y: np.ndarray) -> list[SplineFit]:
+        key = y.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = [SplineFit(dt @ y, model.rays, h, model.first) for h in model.spacings]
+        return cache[key]
+
+    def squares(y: np.ndarray) -> float:
+        t = dt @ y
+        if t.min() < model.first:  # a wild trial step: rejected as worse
+            return OUT_OF_RANGE
+        return (sum(float(fit.res @ fit.res) for fit in fits(y)) * weight**2
+                + float(np.sum((t - t0) ** 2)) / model.prior_sd**2)
+
+    def jacobian(y: np.ndarray) -> np.ndarray:
+        grams = [fit.gram(dt) for fit in fits(y)]
+        jtj = sum(g for g, _ in grams) * weight**2 + dt.T @ dt / model.prior_sd**2
+        jtr = sum(g for _, g in grams) * weight**2 + dt.T @ (dt @ y - t0) / model.prior_sd**2
+        return _condensed(jtj, jtr, squares(y))
+
+    return least_squares(lambda y: np.r_[np.zeros(y.size), np.sqrt(squares(y))], x,
+                         jac=jacobian, method="lm", x_scale=model.gap).x
+
+
+def _burst_design(streams: np.ndarray, frames: np.ndarray, fixed: int | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2q) derivative of the times of bursts' images in the offsets, then the rates, of
+    their q streams but ``fixed``; and those streams' ids, in the order of the columns."""
+    bursts = np.setdiff1d(np.unique(streams), [] if fixed is None else [fixed])
+    onehot = (streams[:, None] == bursts[None, :]).astype(np.float64)
+    return np.concatenate([onehot, onehot * frames[:, None]], axis=1), bursts
+
+
+def burst_covariance(
+    t: np.ndarray,
+    streams: np.ndarray,
+    frames: np.ndarray,
+    E: np.ndarray,
+    rhs: np.ndarray,
+    visible: np.ndarray,
+    ref: int,
+    *,
+    prior: float = BURST_PRIOR,
+    spacings: tuple[float, ...] = SPACINGS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(streams, covariance (2q, 2q)): the offsets then the rates, relative to ``ref``'s clock,
+    of the q bursts but ``ref`` of the images of bursts timed by :func:`fit_burst_clocks` at
+    their times ``t`` (in ``ref``'s frames: its clock offset 0, rate 1). The inverse of the
+    Gauss-Newton information of that fit's residual at ``t`` in every burst's clock (the prior
+    ties the time line down, as in the fit), the rays' part over their noise (the residual
+    there per degree of freedom) and the prior's, plus the outer product of the step that each
+    knot spacing's residual alone would take from ``t`` (the spline model's own error, as
+    ``core.sync`` adds for video clocks); then carried to the clocks relative to ``ref``'s,
+    whose own error they share."""
+    dt, bursts = _burst_design(streams, frames)
+    gap = sampling_interval(t)
+    rays = visible_rays(E, rhs, visible)
+    first = float(t.min()) - BURST_KNOTS_BEFORE * max(spacings) * gap
+    fits = [SplineFit(t, rays, h * gap, first) for h in spacings]
+    # the rays' noise per degree of freedom: on few images per knot the splines take up most
+    # of the residual
+    free = sum(fit.res.size - dt.shape[1] - 3 * np.unique(
+        rays.pt[:, None] * fit.basis.shape[1] + fit.active[rays.img]).size for fit in fits)
+    noise2 = max(sum(float(fit.res @ fit.res) for fit in fits) / max(free, len(fits)),
+                 np.finfo(float).tiny)
+    grams = [fit.gram(dt) for fit in fits]
+    cov = np.linalg.pinv(sum(jtj for jtj, _ in grams) / (noise2 * len(fits))
+                         + dt.T @ dt / (prior * gap) ** 2)
+    # how far each knot spacing alone would move the times: the spline model's own error
+    steps = [cov @ jtr / noise2 for _, jtr in grams]
+    cov = cov + sum(np.outer(step, step) for step in steps) / len(steps)
+    # offset (a_s - a_ref) / b_ref and rate b_s / b_ref, linearised at a_ref = 0, b_ref = 1
+    b, k = bursts.size, int(np.flatnonzero(bursts == ref)[0])
+    others = np.flatnonzero(bursts != ref)
+    lines = np.array([np.polyfit(frames[streams == s], t[streams == s], 1) for s in bursts])
+    G = np.zeros((2 * others.size, 2 * b))
+    rows = np.arange(others.size)
+    G[rows, others] = 1.0
+    G[rows, k] = -1.0
+    G[rows, b + k] = -lines[others, 1]
+    G[others.size + rows, b + others] = 1.0
+    G[others.size + rows, b + k] = -lines[others, 0]
+    return bursts[others], G @ cov @ G.T
 
 
 def moved_periods(t0: np.ndarray, t: np.ndarray, streams: np.ndarray, frames: np.ndarray

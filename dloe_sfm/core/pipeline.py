@@ -29,7 +29,7 @@ from .alternation import (
     soft_ray_weight,
 )
 from .capture import Capture
-from .clocked import clocks_and_offsets
+from .clocked import burst_times, clocks_and_offsets
 from .decisions import (
     MOST_OF_AN_IMAGE,
     NOISE_KEPT,
@@ -123,6 +123,7 @@ def finish_single(
         t_clocks = time.perf_counter()
         result = clocks_and_offsets(capture, solved, options, result, auto_noise=auto_noise,
                                     checked=checked)
+        result = burst_times(solved, options, result)
         timings["clocks"] = time.perf_counter() - t_clocks
     return replace(result, timings=timings, seconds=before + time.perf_counter() - started)
 

@@ -56,7 +56,10 @@ class Result:
         held-out check preferred DLOE's graph), as ``clock`` counts it (NaN elsewhere); None
         when no event's clocks were dropped. Such an event is still ordered and timed by them
         (``order``, the exports), and the sync report takes their disagreement with DLOE's own
-        time line (``embedding``) into its uncertainty (``core.sync.stream_clocks``).
+        time line (``embedding``) into its uncertainty (``core.sync.stream_clocks``). An event
+        of bursts and lone photos alone has no stream clocks: its bursts' clocks
+        (``core.clocked.burst_times``) are here too, counted in frames of its stream of most
+        images, and the graph's points kept.
     subject_id, point_id : (P',) int or None
         With several subjects: column k of X is point ``point_id[k]`` of subject
         ``subject_id[k]`` (P' = subjects x P). None for one subject.

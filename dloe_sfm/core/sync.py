@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import InputError
 from .capture import Capture
-from .clocks import SPACINGS, sampling_interval
+from .clocks import SPACINGS, burst_covariance, sampling_interval
 from .splines import ray_equations, spline_residuals
 
 Fps = float | dict[int, float] | None
@@ -65,7 +65,7 @@ def _lines(t: np.ndarray, streams: np.ndarray, frames: np.ndarray,
 def _rank_sd(lines: dict, t: np.ndarray, streams: np.ndarray,
              ref: int) -> dict[int, tuple[float, float]]:
     """Per stream of ``lines`` (:func:`_lines` of the rank base's times ``t``,
-    ``mocap_export._rank_times``) but ``ref``: (offset_sd, rate_sd) of its line relative to the
+    ``clocks.rank_times``) but ``ref``: (offset_sd, rate_sd) of its line relative to the
     reference's, from two variances of the times (module docstring): the lines' residual
     variance pooled over all the lines (at least that of a time rounded to the step between
     consecutive times, step^2 / 12), and where times drawn at random fall about the even places
@@ -193,6 +193,15 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         held = _held(capture, idx, lines, ref, free)
         if summary["base"] == "rank":
             sd = _rank_sd(lines, t, streams, ref)
+        elif summary["base"] == "burst clock":
+            burst = np.isin(streams, videos)
+            sub = capture.subset(idx[burst])
+            E, rhs = ray_equations(sub.rays(), sub.C, sub.weights)
+            bursts, cov = burst_covariance(t[burst], streams[burst], frames[burst], E, rhs,
+                                           sub.visible, ref)
+            var = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            sd = {int(s): (float(var[k]), float(var[bursts.size + k]))
+                  for k, s in enumerate(bursts)}
         elif free:
             cov = _ray_covariance(capture.subset(idx), t, streams, frames, free, held=held)
             var = np.sqrt(np.maximum(np.diag(cov), 0.0))
