@@ -2,7 +2,9 @@
 (``core.decisions``) and kept, timing only or dropped, with the robust check along the clocks and
 the streams' offsets of the detections around them (docs/method.md, "Stream clocks", "Judged
 again on the clocks", "Stream offsets"). The entry is :func:`clocks_and_offsets`, the last step
-of ``pipeline.solve_single``; the clocks themselves are fitted by ``clocks.fit_clocks``.
+of ``pipeline.solve_single`` but one; the clocks themselves are fitted by ``clocks.fit_clocks``.
+The last, :func:`burst_times`, times the events of bursts and lone photos on their bursts'
+clocks (``clocks.fit_burst_clocks``; docs/method.md, "Clocks of bursts").
 """
 
 from __future__ import annotations
@@ -365,17 +367,17 @@ def on_clocks(result: Result, placed: list[Placement], *, checked: bool,
 
 
 def burst_times(capture: Capture, options: Options, result: Result) -> Result:
-    """``result`` with every event of bursts and lone photos alone (``events.without_videos``)
-    timed on its bursts' clocks (``clocks.fit_burst_clocks``) from the rank base
-    (``clocks.rank_times``; the reference, the stream of most images), its lone photos evenly
-    by rank between the bursts' images (``clocks.by_rank``: their own times, fitted, made the
-    order worse on the bundled crowd, docs/method.md, "Clocks of bursts"): the times go to
-    ``clock_dropped`` and the event's block of the order is theirs. The points stay the
-    graph's: the chain along these times places badly the images at the ends of the time line
-    and those whose neighbours in time are nearly as early (docs/method.md, "Clocks of
-    bursts"). An event needs two streams of two or more images and no clocks of its own; a fit
-    that puts a stream's frames out of their order is not taken (logged). ``capture`` is the
-    one the result was solved on."""
+    """``result`` with every event of bursts and lone photos alone (``events.without_videos``,
+    not :func:`filmed`) timed on its bursts' clocks (``clocks.fit_burst_clocks``) from the rank
+    base (``clocks.rank_times``; the reference, the stream of most images), its lone photos
+    evenly by rank between the bursts' images (``clocks.by_rank``), where those times predict
+    held-out detections better than the rank base (``decisions.burst_clocks_time``; logged
+    either way). The times go to ``clock_dropped`` and the event's block of the order is
+    theirs; the points stay the graph's (docs/method.md, "Clocks of bursts": lone photos timed
+    on their own, and points on the chain along these times, did worse). An event needs two
+    streams of two or more images and no clocks of its own; a fit that puts a stream's frames
+    out of their order is not taken (logged). ``capture`` is the one the result was solved
+    on."""
     n, stream_ids = capture.num_images, capture.stream_ids
     times = np.full(n, np.nan) if result.clock_dropped is None else result.clock_dropped.copy()
     order, rank = result.order.copy(), result.rank

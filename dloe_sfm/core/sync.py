@@ -16,6 +16,8 @@ the outer product of the Gauss-Newton step each spacing alone would take from th
 spline model's own error, which dominates on clean data). It is local: a fit caught in a wrong
 minimum keeps a small one. Where the clock fit held the rates at the known frame rates' ratios,
 ``J`` is in the offsets alone and the rates carry no uncertainty (``rate_held``). With base
+``burst clock`` (an event of bursts and lone photos on its bursts' clocks) the same from that
+fit's own problem, its prior included (``clocks.burst_covariance``). With base
 ``rank`` the times are not on lines: ordinary least squares of the times on the frames. Their
 uncertainty (:func:`_rank_sd`) adds two variances of the times: the residual variance pooled
 over the event's streams (a burst of two or three frames has no scatter of its own, or one
