@@ -4,8 +4,8 @@ Time. Every image's time is first counted in frames of its event's reference str
 event's video with the most images: its frame numbers, as in the file names), by the most
 faithful base the result holds, per event: ``clock`` (the streams' fitted affine clocks,
 ``Result.clock``, or those the held-out check dropped for the points,
-``Result.clock_dropped``), ``burst clock`` (an event of bursts and lone photos alone timed on
-its bursts' clocks, ``Result.clock_dropped`` from ``core.clocked.burst_times``), ``affine
+``Result.clock_dropped``), ``burst clock`` (the same of an event of bursts and lone photos
+alone: its bursts' clocks, ``core.clocked.burst_times``), ``affine
 embedding`` (the embedding is the streams' affine clocks: every stream's images lie on a line
 in their frame numbers), else ``rank`` (the reference stream's images at their frames, the
 others between them evenly by estimated order; an event without a video: one frame per image).
@@ -176,7 +176,7 @@ def image_times(capture: Capture, result: Result) -> Timeline:
             t = _affine_times(u, streams, frames, ref)
             if t is not None and (np.diff(t) >= -AFFINE_TOLERANCE * np.ptp(t)).all():
                 base = ("affine embedding" if clocks is None
-                        else "burst clock" if kept is None and not filmed(streams) else "clock")
+                        else "clock" if filmed(streams) else "burst clock")
             else:
                 t = rank_times(streams, frames, ref)
         if t is None:

@@ -372,18 +372,19 @@ def burst_times(capture: Capture, options: Options, result: Result) -> Result:
     base (``clocks.rank_times``; the reference, the stream of most images), its lone photos
     evenly by rank between the bursts' images (``clocks.by_rank``), where those times predict
     held-out detections better than the rank base (``decisions.burst_clocks_time``; logged
-    either way). The times go to ``clock_dropped`` and the event's block of the order is
-    theirs; the points stay the graph's (docs/method.md, "Clocks of bursts": lone photos timed
-    on their own, and points on the chain along these times, did worse). An event needs two
-    streams of two or more images and no clocks of its own; a fit that puts a stream's frames
-    out of their order is not taken (logged). ``capture`` is the one the result was solved
-    on."""
+    either way). The event's block of the order is theirs; its points go on the chain along
+    them where they predict held-out detections as well as the graph's (:func:`verdicts`, as a
+    video's clocks; then the times are ``clock``), else they stay the graph's and the times go
+    to ``clock_dropped`` (docs/method.md, "Clocks of bursts"; lone photos timed on their own
+    did worse). An event needs two streams of two or more images and no clocks of its own; a
+    fit that puts a stream's frames out of their order is not taken (logged). ``capture`` is
+    the one the result was solved on."""
     n, stream_ids = capture.num_images, capture.stream_ids
     times = np.full(n, np.nan) if result.clock_dropped is None else result.clock_dropped.copy()
     order, rank = result.order.copy(), result.rank
     timed = np.isfinite(times) | (np.zeros(n, dtype=bool) if result.clock is None
                                   else np.isfinite(result.clock))
-    changed = False
+    changed, placed = False, []
     for e in np.unique(result.events):
         idx = np.flatnonzero(result.events == e)
         idx = idx[np.argsort(rank[idx], kind="stable")]
@@ -419,7 +420,30 @@ def burst_times(capture: Capture, options: Options, result: Result) -> Result:
             continue
         times[idx], changed = t, True
         order[np.sort(rank[idx])] = idx[np.argsort(t, kind="stable")]
-    return replace(result, clock_dropped=times, order=order) if changed else result
+        placed.append(_on_burst_clocks(sub, options, result, idx, t))
+    if not changed:
+        return result
+    result = replace(result, clock_dropped=times, order=order)
+    kept = [p for p, v in zip(placed, verdicts(placed, options, result), strict=True)
+            if v is Verdict.KEPT]
+    for p in kept:  # timed and placed on their clocks
+        times[p.idx] = np.nan
+    return on_clocks(replace(result, clock_dropped=times if np.isfinite(times).any() else None),
+                     kept, checked=False)
+
+
+def _on_burst_clocks(sub: Capture, options: Options, result: Result, idx: np.ndarray,
+                     t: np.ndarray) -> Placement:
+    """The event of images ``idx`` (``sub``) of ``result`` placed on its bursts' clocks ``t``
+    (:func:`burst_times`): the points by the X-step on the chain along them, the rays as the
+    solve's, for the held-out check against the graph (:func:`verdicts`)."""
+    norm = normalise(sub, options, result.X[idx])
+    W, D = time_chain(t)
+    X = x_step(W, D, norm.problem, lambda1=0.0, lambda2=soft_ray_weight(sub, options),
+               X_prev=norm.to_normal(result.X[idx]))
+    rejected, residual = outlier_arrays(result)
+    return Placement(idx, t, W, D, norm.to_world(X), rejected[idx], residual[idx],
+                     options.noise_px, sub, None, 0.0)
 
 
 def clock_offsets(capture: Capture, result: Result) -> np.ndarray | None:

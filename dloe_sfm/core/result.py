@@ -50,16 +50,18 @@ class Result:
     clock : (N,) float or None
         With stream clocks (``Options.stream_clocks``): every image's time on its stream's
         fitted clock, in frames of its event's longest stream (NaN in an event without them);
-        None when no event has them.
+        None when no event has them. The points of those events are on the chain along them
+        (an event of bursts and lone photos on its bursts' clocks too,
+        ``core.clocked.burst_times``).
     clock_dropped : (N,) float or None
         Every image's time on the clocks fitted for its event but not kept for its points (the
         held-out check preferred DLOE's graph), as ``clock`` counts it (NaN elsewhere); None
         when no event's clocks were dropped. Such an event is still ordered and timed by them
         (``order``, the exports), and the sync report takes their disagreement with DLOE's own
         time line (``embedding``) into its uncertainty (``core.sync.stream_clocks``). An event
-        of bursts and lone photos alone has no stream clocks: its bursts' clocks
-        (``core.clocked.burst_times``) are here too, counted in frames of its stream of most
-        images, and the graph's points kept.
+        of bursts and lone photos alone whose bursts' clocks (``core.clocked.burst_times``)
+        time it but do not hold its points has them here too, counted in frames of its stream
+        of most images.
     subject_id, point_id : (P',) int or None
         With several subjects: column k of X is point ``point_id[k]`` of subject
         ``subject_id[k]`` (P' = subjects x P). None for one subject.
