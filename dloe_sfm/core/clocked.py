@@ -411,6 +411,10 @@ def burst_times(capture: Capture, options: Options, result: Result) -> Result:
         sub = capture.subset(idx)
         said = [residuals_px(sub, chain_predicted(time_chain(x)[0], x, result.X[idx]))
                 for x in (t0, t)]
+        if not all(np.isfinite(px).any() for px in said):
+            logger.info("event %d: no detection to judge its bursts' clocks on; it keeps the "
+                        "rank base", e)
+            continue
         kept = burst_clocks_time(*said)
         logger.info("event %d: %d bursts and %d lone photo(s); held-out detections along the "
                     "bursts' clocks %.2f px, along the rank base %.2f px (median): %s", e,

@@ -268,7 +268,8 @@ def clock_verdict(
     ``heldout.held_out_px`` on at most ``heldout.CHECK_IMAGES`` images in the middle of the
     clocks' time line); else timing when they lost narrowly (:func:`clocks_time`); else
     rejected. Logged. ``clock``: the clocks' held-out residuals, when :func:`soft_rays_on_clocks`
-    has them."""
+    has them. Rejected, and logged, where no held-out detection is predicted by both (a
+    capture of a few images)."""
     window, sub = middle_window(capture, t)
     graph = held_out_px(sub, options, X_world[window], D[window],
                         soft_ray_weight(capture, options), images=True)
@@ -276,6 +277,9 @@ def clock_verdict(
         ticked = options if noise_px is None else options.replace(noise_px=noise_px)
         clock = held_out_px(sub, ticked, X_world[window], D[window],
                             soft_ray_weight(capture, ticked), times=t[window], images=True)
+    if not (np.isfinite(graph) & np.isfinite(clock)).any():
+        logger.info("held-out detections: none that both models predict; DLOE's graph is kept")
+        return Verdict.REJECTED
     verdict = (Verdict.KEPT if clocks_hold(graph, clock)
                else Verdict.TIMING if clocks_time(graph, clock) else Verdict.REJECTED)
     said = {Verdict.KEPT: "clocks kept",
