@@ -35,7 +35,7 @@ import numpy as np
 
 from .core.capture import Capture
 from .core.clocked import filmed
-from .core.clocks import rank_times
+from .core.clocks import rank_times, reference_stream
 from .core.result import Result
 from .core.sync import Fps, stream_fps
 from .errors import InputError
@@ -165,9 +165,7 @@ def image_times(capture: Capture, result: Result) -> Timeline:
         idx = np.flatnonzero(result.events == e)
         idx = idx[np.argsort(rank[idx])]
         streams, frames = stream_ids[idx], capture.frame[idx]
-        ids, counts = np.unique(streams, return_counts=True)
-        videos = [s for s in ids if np.unique(frames[streams == s]).size >= 2]
-        ref = max(videos, key=lambda s: (counts[ids == s][0], -s)) if videos else None
+        videos, ref = reference_stream(streams, frames)
         t, base = None, "rank"
         kept = _event_times(result.clock, idx)
         clocks = _event_times(result.clock_dropped, idx) if kept is None else kept

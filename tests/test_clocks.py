@@ -532,7 +532,6 @@ def test_a_wild_trial_step_is_rejected_not_fitted(sparse_walk, monkeypatch):
     assert np.array_equal(probed, plain)
 
 
-
 def test_bursts_and_lone_photos_are_timed_on_the_bursts_clocks(assets_dir):
     """30 bursts of 2-5 frames at 1-10 Hz and 6 lone photos over 3 s of a walk, clean, every
     third marker (10, as many as a crowd workspace's): the rank base, even in the true order,

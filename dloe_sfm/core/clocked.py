@@ -27,6 +27,7 @@ from .clocks import (
     fit_clocks,
     moved_periods,
     rank_times,
+    reference_stream,
     time_chain,
 )
 from .decisions import (
@@ -389,11 +390,9 @@ def burst_times(capture: Capture, options: Options, result: Result) -> Result:
         idx = np.flatnonzero(result.events == e)
         idx = idx[np.argsort(rank[idx], kind="stable")]
         streams, frames = stream_ids[idx], capture.frame[idx]
-        ids, counts = np.unique(streams, return_counts=True)
-        bursts = [s for s in ids if np.unique(frames[streams == s]).size >= 2]
+        bursts, ref = reference_stream(streams, frames)
         if timed[idx].any() or len(bursts) < 2 or filmed(streams) or not without_videos(streams):
             continue
-        ref = max(bursts, key=lambda s: (counts[ids == s][0], -s))
         t0 = rank_times(streams, frames, ref)
         if t0 is None:
             continue
@@ -418,7 +417,7 @@ def burst_times(capture: Capture, options: Options, result: Result) -> Result:
         kept = burst_clocks_time(*said)
         logger.info("event %d: %d bursts and %d lone photo(s); held-out detections along the "
                     "bursts' clocks %.2f px, along the rank base %.2f px (median): %s", e,
-                    len(bursts), int((counts == 1).sum()), np.nanmedian(said[1]),
+                    len(bursts), int((~burst).sum()), np.nanmedian(said[1]),
                     np.nanmedian(said[0]), "timed on the clocks" if kept else "the rank base kept")
         if not kept:
             continue

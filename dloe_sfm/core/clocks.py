@@ -299,6 +299,17 @@ def fit_clocks(
     return times(x)
 
 
+def reference_stream(streams: np.ndarray, frames: np.ndarray) -> tuple[list[int], int | None]:
+    """The streams among an event's images (``streams`` / ``frames``) with two or more distinct
+    frames (its videos and bursts), and its reference stream among them: the one of most
+    images, the lowest id on a tie; None without any. What the exports count time in
+    (``mocap_export.image_times``), and the first guess of :func:`fit_burst_clocks`."""
+    ids, counts = np.unique(streams, return_counts=True)
+    videos = [int(s) for s in ids if np.unique(frames[streams == s]).size >= 2]
+    ref = max(videos, key=lambda s: (counts[ids == s][0], -s)) if videos else None
+    return videos, ref
+
+
 def rank_times(streams: np.ndarray, frames: np.ndarray, ref: int) -> np.ndarray | None:
     """(m,) times of an event's images in their estimated order (``streams``, ``frames`` in
     that order): the reference stream ``ref``'s at their frames, the others evenly between them
@@ -354,8 +365,7 @@ def fit_burst_clocks(
     rays = visible_rays(E, rhs, visible)
 
     def noise(t: np.ndarray) -> float:
-        first = float(t.min()) - BURST_KNOTS_BEFORE * max(spacings) * gap
-        r = np.concatenate([SplineFit(t, rays, h * gap, first).res for h in spacings])
+        r = np.concatenate([fit.res for fit in _spacing_fits(t, rays, gap, spacings)])
         return max(float(np.sqrt(np.mean(r**2))), np.finfo(float).tiny)
 
     scale = noise(t0)
@@ -411,6 +421,15 @@ def _burst_stage(x: np.ndarray, t0: np.ndarray, dt: np.ndarray, model: _BurstMod
                          jac=jacobian, method="lm", x_scale=model.gap).x
 
 
+def _spacing_fits(t: np.ndarray, rays: Rays, gap: float, spacings: tuple[float, ...]
+                  ) -> list[SplineFit]:
+    """The spline fits at times ``t`` of :func:`fit_burst_clocks`'s residual at its last
+    stage's knots, ``spacings`` times ``gap`` apart, from :data:`BURST_KNOTS_BEFORE` of the
+    widest before the first time."""
+    first = float(t.min()) - BURST_KNOTS_BEFORE * max(spacings) * gap
+    return [SplineFit(t, rays, h * gap, first) for h in spacings]
+
+
 def _burst_design(streams: np.ndarray, frames: np.ndarray, fixed: int | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2q) derivative of the times of bursts' images in the offsets, then the rates, of
@@ -442,10 +461,9 @@ def burst_covariance(
     ``core.sync`` adds for video clocks); then carried to the clocks relative to ``ref``'s,
     whose own error they share."""
     dt, bursts = _burst_design(streams, frames)
-    gap = sampling_interval(t)
     rays = visible_rays(E, rhs, visible)
-    first = float(t.min()) - BURST_KNOTS_BEFORE * max(spacings) * gap
-    fits = [SplineFit(t, rays, h * gap, first) for h in spacings]
+    gap = sampling_interval(t)
+    fits = _spacing_fits(t, rays, gap, spacings)
     # the rays' noise per degree of freedom: on few images per knot the splines take up most
     # of the residual
     free = sum(fit.res.size - dt.shape[1] - 3 * np.unique(

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import InputError
 from .capture import Capture
-from .clocks import SPACINGS, burst_covariance, sampling_interval
+from .clocks import SPACINGS, burst_covariance, reference_stream, sampling_interval
 from .splines import ray_equations, spline_residuals
 
 Fps = float | dict[int, float] | None
@@ -179,7 +179,7 @@ def stream_clocks(capture: Capture, labels: np.ndarray, time: np.ndarray,
         idx = np.flatnonzero(labels == summary["event"])
         streams, frames, t = stream_ids[idx], capture.frame[idx], time[idx]
         ref = summary["reference_stream"]
-        videos = [int(s) for s in np.unique(streams) if np.unique(frames[streams == s]).size >= 2]
+        videos, _ = reference_stream(streams, frames)
         other = None
         if graph is not None and summary["clocks_dropped"]:
             other = _lines(graph[idx], streams, frames, videos)
