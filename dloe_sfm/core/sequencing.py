@@ -11,7 +11,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import kendalltau
 
 from .dtw import FULL_TABLE, CostFn, align_many, in_blocks
 from .options import Distance
@@ -345,7 +344,10 @@ def order_from_embedding(f: np.ndarray) -> np.ndarray:
 
 
 def kendall_tau(order: np.ndarray, times: np.ndarray) -> float:
-    """|Kendall tau| between an estimated order (image indices, earliest first) and true times."""
+    """|Kendall tau| between an estimated order (image indices, earliest first) and true times.
+    (``scipy.stats`` is imported here: it takes most of a second, and only evaluation needs it.)"""
+    from scipy.stats import kendalltau
+
     rank = np.empty(order.size)
     rank[order] = np.arange(order.size)
     tau = kendalltau(rank, times).statistic
