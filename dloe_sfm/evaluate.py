@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import json
 import logging
 from pathlib import Path
 
@@ -241,7 +242,9 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
     Mean / median 3D error in mm as written and after the similarity that best aligns the result
     to the truth (for a model in another frame or scale), |Kendall tau| of the order and the RMS
     sync error (ms, after an affine map per event of ``sequence.csv``'s times) when the truth has
-    times.
+    times; and, where ``report.json`` flags images whose place in the order the data could not
+    pin down (``image_status.order_ambiguous``), their count and the order and sync without
+    them (``kendall_tau_unambiguous``, ``sync_rms_unambiguous_ms``), as :func:`evaluate` does.
     """
     folder, truth = Path(folder), Path(truth)
     if not (folder / "trajectories.npz").is_file():
@@ -290,8 +293,32 @@ def evaluate_output(folder: Path | str, truth: Path | str) -> dict[str, float]:
         t_true = t_true[idx].astype(np.float64)
         scores["kendall_tau"] = kendall_tau(order, t_true)
         times = _sequence_times(folder / "sequence.csv")
+        t_est = np.array([times.get(name, np.nan) for name in names])
         if times:
-            t_est = np.array([times.get(name, np.nan) for name in names])
             scores["sync_rms_ms"] = 1000 * _sync_rms(t_est, t_true, events)
+        flagged = _order_ambiguous(folder / "report.json")
+        ambiguous = np.array([name in flagged for name in names], dtype=bool)
+        scores["order_ambiguous"] = int(ambiguous.sum())
+        if ambiguous.any() and (~ambiguous).sum() >= 2:
+            rank = np.empty(n, dtype=np.int64)
+            rank[order] = np.arange(n)
+            kept = ~ambiguous
+            scores["kendall_tau_unambiguous"] = kendall_tau(np.argsort(rank[kept]), t_true[kept])
+            if times:
+                scores["sync_rms_unambiguous_ms"] = 1000 * _sync_rms(t_est[kept], t_true[kept],
+                                                                     events[kept])
     return scores
+
+
+def _order_ambiguous(path: Path) -> set[str]:
+    """Names of the images ``report.json`` flags as placed where the data could not pin them
+    down (``image_status.order_ambiguous``; none without the file or the key)."""
+    if not path.is_file():
+        return set()
+    try:
+        report = json.loads(path.read_text(encoding="utf-8"))
+        names = report.get("image_status", {}).get("order_ambiguous", [])
+        return {str(name) for name in names}
+    except (OSError, UnicodeDecodeError, ValueError, AttributeError, TypeError) as e:
+        raise InputError(f"{path}: cannot read the flagged images ({e})") from None
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ import dloe_sfm
 import dloe_sfm.stages.reconstruct as stage
 from dloe_sfm import cli, colmap
 from dloe_sfm.core.solver import reconstruct as solver
+from dloe_sfm.errors import InputError
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +78,28 @@ def test_evaluate_scores_an_output_folder(scene, reconstructed, tmp_path, capsys
     assert scores["alignment_scale"] == pytest.approx(1, abs=1e-2)
     assert scores["error_aligned_mm"] < 2 * scores["error_mm"] and scores["kendall_tau"] > 0.99
     assert 0 <= scores["sync_rms_ms"] < 1000 * 0.25 / len(names)  # a quarter of an image slot
+    assert scores["order_ambiguous"] == 0 and "kendall_tau_unambiguous" not in scores
+    # two images' true times swapped, the first and the last: flagged order-ambiguous in the
+    # report, they are left out of the order and the sync scored without them
+    flagged = tmp_path / "flagged"
+    flagged.mkdir()
+    for name in ("trajectories.npz", "sequence.csv", "report.json"):
+        shutil.copy(reconstructed / name, flagged / name)
+    first, last = int(np.argmin(t_true)), int(np.argmax(t_true))
+    swapped = t_true.copy()
+    swapped[[first, last]] = t_true[[last, first]]
+    np.savez(tmp_path / "swapped.npz", image_names=names, X_true=X_true, t_true=swapped)
+    report = json.loads((flagged / "report.json").read_text())
+    report["image_status"]["order_ambiguous"] = [names[first], names[last]]
+    (flagged / "report.json").write_text(json.dumps(report))
+    both = evaluate_output(flagged, tmp_path / "swapped.npz")
+    assert both["order_ambiguous"] == 2
+    assert both["kendall_tau"] < 0.95 and both["sync_rms_ms"] > 1000 * 0.25 / len(names)
+    assert both["kendall_tau_unambiguous"] > 0.99
+    assert 0 <= both["sync_rms_unambiguous_ms"] < 1000 * 0.25 / len(names)
+    (flagged / "report.json").write_text("{")
+    with pytest.raises(InputError, match="report.json: cannot read the flagged images"):
+        evaluate_output(flagged, tmp_path / "swapped.npz")
     # the same truth in another frame and scale: the aligned error scales with it, no more
     c, s = np.cos(0.7), np.sin(0.7)
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])

@@ -122,7 +122,8 @@ def table(rows: list[dict]) -> str:
     field = field_pipeline()
     head = (f"{'seed':>4} {'imgs':>4} {'cams':>4} {'lone':>4} {'burst':>5} {'mean':>7} "
             f"{'aligned':>7} {'oracle':>7} {'bound':>7} {'pseudo':>7} {'worst/med':>9} "
-            f"{'tau':>6} {'sync ms':>7} {'/period':>7} {'1sd':>4} {'2sd':>4} {'s':>5}  pass")
+            f"{'flag':>4} {'tau':>6} {'sync ms':>7} {'/period':>7} {'1sd':>4} {'2sd':>4} "
+            f"{'s':>5}  pass")
     lines = [head]
     for r in rows:
         bound = field.ORACLE_FACTOR * r["oracle_mm"] + field.ORACLE_SLACK_MM
@@ -131,12 +132,14 @@ def table(rows: list[dict]) -> str:
             f"{r['seed']:>4} {r['images']:>4} {r['cameras']:>4} {r['lone_photos']:>4} "
             f"{r['bursts']:>5} {r['error_mm']:>7.2f} {r['error_aligned_mm']:>7.2f} "
             f"{r['oracle_mm']:>7.2f} {bound:>7.2f} {r['pseudo_triangulation_mm']:>7.2f} "
-            f"{r['worst_over_median']:>9.2f} {r['kendall_tau']:>6.4f} "
-            f"{r.get('sync_rms_ms', np.nan):>7.2f} {r['sync_periods']:>7.4f} "
+            f"{r['worst_over_median']:>9.2f} {r.get('order_ambiguous', 0):>4} "
+            f"{r['tau_judged']:>6.4f} {r['sync_rms_judged_ms']:>7.2f} "
+            f"{r['sync_periods_judged']:>7.4f} "
             f"{r['offsets_within_1sd']:>4.2f} {r['offsets_within_2sd']:>4.2f} "
             f"{r['seconds_reconstruct']:>5.1f}  {passed}")
     lines.append("errors in mm; bound = 1.3 x oracle + 2 mm; /period = sync RMS over the median "
-                 "burst's frame period (<= 1/30); 1sd, 2sd = the bursts' offsets within 1 and "
+                 "burst's frame period (<= 1/30); flag = images flagged order-ambiguous, left out "
+                 "of tau and sync where <= 5 %; 1sd, 2sd = the bursts' offsets within 1 and "
                  "2 standard uncertainties of the truth (honest: about 0.68, 0.95); s = "
                  "reconstruct's seconds; pass: mean, worst "
                  f"image (<= 5 x median), tau (>= 0.99), sync, seconds (<= {MAX_SECONDS:g})")
