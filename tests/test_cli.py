@@ -194,12 +194,16 @@ def test_config_file_and_overrides(tmp_path):
         load_options(cfg)
 
 
-def test_every_stage_has_help():
-    from dloe_sfm.cli import STAGES
+def test_every_stage_has_help(capsys):
+    from dloe_sfm.cli import STAGES, main
 
-    for stage in STAGES:
-        r = dloe(stage, "--help")
-        assert r.returncode == 0 and "usage" in r.stdout, (stage, r.stderr)
+    for stage in STAGES:  # in this process: argparse's help and exit, as on the command line
+        with pytest.raises(SystemExit) as exit_info:
+            main([stage, "--help"])
+        out = capsys.readouterr().out
+        assert exit_info.value.code == 0 and out.startswith(f"usage: dloe-sfm {stage}"), stage
+    r = dloe("reconstruct", "--help")
+    assert r.returncode == 0 and r.stdout.startswith("usage: dloe-sfm reconstruct"), r.stderr
     r = subprocess.run(
         [sys.executable, "-m", "dloe_sfm.stages.solve", "--help"], capture_output=True, text=True
     )
