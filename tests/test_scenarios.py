@@ -23,6 +23,7 @@ from dloe_sfm.core.robust import (
     residuals_px,
     reweighted,
 )
+from dloe_sfm.core.sequencing import kendall_tau
 from dloe_sfm.core.solver import reconstruct
 from dloe_sfm.core.xstep import x_step
 from dloe_sfm.synth import SimulationSettings, load_mocap, simulate
@@ -182,6 +183,21 @@ def test_a_motion_runs_on_across_any_cut_but_not_across_a_gap(clips):
         assert all(runs_on(truth.X, order[:k], order[k:], 300) for k in cuts)
         first, last = order[truth.t[order] < 1.0], order[truth.t[order] > 2.0]
         assert not runs_on(truth.X, first, last, first.size + last.size)
+
+
+@pytest.mark.slow
+@pytest.mark.shared
+def test_a_walk_cut_at_its_widest_spacing_is_one_event(shared_dir):
+    """250 clean lone photos of walking_5 (seed 2, issue 38's held-out lone_check): the graph
+    cuts them where no photo fell for 83 ms (11 median spacings), and the solved shapes there
+    lie 21.8 median steps apart, beyond the 2 log2 n = 15.9 once allowed: one walk reported as
+    two events. Reported as one, in order."""
+    seq = load_mocap(shared_dir / "data" / "mocap" / "li2018_train_walking_5.npz")
+    cap, truth = simulate(seq, SimulationSettings(duration=3.0, num_streams=0, lone_photos=250,
+                                                  seed=2))
+    r = reconstruct(cap, Options())
+    assert r.events.max() == 0
+    assert kendall_tau(r.order, truth.t) >= 0.99
 
 
 def test_find_swaps_on_an_exact_prediction(rng, clips):

@@ -25,7 +25,12 @@ TOUCH_STEPS = 3.0
 an image to its nearest shape) of each other are one motion: they are joined."""
 JUNCTION_IMAGES = 10
 """Images at either side of a junction between two solved events of lone photos compared by
-:func:`runs_on`."""
+:func:`runs_on`..."""
+RUN_ON_FACTOR = 3.4
+"""...and the factor on ``log2 n`` median steps within which their closest shapes lie where
+the motion runs on across it (docs/method.md, "Events of lone photos"): solved false cuts of
+one motion needed up to 2.74, time gaps in which the motion went on at least 4.14; this is
+their geometric middle."""
 
 
 def without_videos(streams: np.ndarray) -> bool:
@@ -184,10 +189,11 @@ def runs_on(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> boo
     random instants.
 
     At ``n`` random instants the largest of the spacings is about ln n mean spacings and their
-    median ln 2 of one; twice that ratio allows for the motion's speed changing across the
-    junction and for the shapes' noise. A cut through a continuous motion (where a fast part
-    leaves a wide step) stays within it; a time gap in which the motion went on does not
-    (docs/method.md, "Events of lone photos").
+    median ln 2 of one; :data:`RUN_ON_FACTOR` times that ratio allows for the largest spacing's
+    tail, the motion's speed changing across the junction, and the solved shapes at an event's
+    ends, which bunch up and leave the junction wider than the motion's step. A cut through a
+    continuous motion (where a fast part leaves a wide step) stays within it; a time gap in
+    which the motion went on does not (docs/method.md, "Events of lone photos").
     """
     F = X.reshape(X.shape[0], -1)
     a, b = F[before[-JUNCTION_IMAGES:]], F[after[:JUNCTION_IMAGES]]
@@ -196,7 +202,7 @@ def runs_on(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> boo
     if not steps.size:
         return False
     gap = float(np.sqrt(((a[:, None] - b[None]) ** 2).sum(axis=2).min()))
-    return gap <= 2.0 * np.log(max(n, 2)) / np.log(2.0) * float(np.median(steps))
+    return gap <= RUN_ON_FACTOR * np.log2(max(n, 2)) * float(np.median(steps))
 
 
 def segment_events(
