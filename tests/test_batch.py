@@ -208,6 +208,7 @@ def test_outputs_and_names_are_checked_first(captures, tmp_path, capsys) -> None
     assert not (tmp_path / "x").exists() and not (files[0].parent / "x").exists()
 
 
+@pytest.mark.slow
 def test_windows_of_one_capture_on_a_local_cluster(assets_dir) -> None:
     """A capture's overlapping time windows as Dask tasks: the numbers of the windows solved
     in this process (one BLAS thread each way)."""

@@ -280,6 +280,7 @@ def test_clocks_hold_the_known_frame_rates(biased_walk):
     assert worst[False] < 0.5 and worst[False] < worst[True]
 
 
+@pytest.mark.slow
 def test_the_solve_holds_known_frame_rates_once_the_offsets_are_out(biased_walk, tmp_path):
     """Default options on the biased walk: the detections' offsets are taken out and the clocks
     fitted again with the rates at the ratios of the capture's frame rates, which the sync

@@ -95,6 +95,7 @@ def test_auto_on_exact_detections_is_the_hard_ray_solve(assets_dir):
     np.testing.assert_array_equal(auto.X, told.X)
 
 
+@pytest.mark.slow
 def test_detector_errors_are_solved_with_soft_rays_and_beat_hard_ones(assets_dir):
     """Heavy-tailed, per-camera biased detections (the OpenPose model): their residuals differ
     from point to point, yet soft rays predict held-out detections better, and the result is
@@ -197,6 +198,7 @@ def test_soft_rays_along_the_clocks_only_for_noisy_detections(assets_dir, noise)
     assert abs(level - noise) <= 0.25 * noise, level
 
 
+@pytest.mark.slow
 def test_robust_rounds_under_detector_noise_solve_once_more(assets_dir, monkeypatch):
     """The OpenPose model's detections: every solve finds their noise, and the robust rounds
     re-solve ``NOISY_ROUNDS`` times (each round's scale, from a fit without the last round's
