@@ -321,4 +321,3 @@ def _order_ambiguous(path: Path) -> set[str]:
         return {str(name) for name in names}
     except (OSError, UnicodeDecodeError, ValueError, AttributeError, TypeError) as e:
         raise InputError(f"{path}: cannot read the flagged images ({e})") from None
-

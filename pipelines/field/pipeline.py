@@ -111,13 +111,12 @@ def score(workspace: Path, out: Path, *,
         "images_without_points": int(np.isnan(per_image).sum()),
         "sync_periods": scores.get("sync_rms_ms", np.nan) / period_ms(rates),
     })
-    judged = scores.get("order_ambiguous", 0) <= MAX_AMBIGUOUS * scores["images"]
-    scores["tau_judged"] = scores.get("kendall_tau_unambiguous", scores["kendall_tau"]) \
-        if judged else scores["kendall_tau"]
-    sync_ms = scores.get("sync_rms_unambiguous_ms", scores.get("sync_rms_ms", np.nan)) \
-        if judged else scores.get("sync_rms_ms", np.nan)
-    scores["sync_rms_judged_ms"] = sync_ms
-    scores["sync_periods_judged"] = sync_ms / period_ms(rates)
+    tau, sync_ms = scores["kendall_tau"], scores.get("sync_rms_ms", np.nan)
+    if scores.get("order_ambiguous", 0) <= MAX_AMBIGUOUS * scores["images"]:
+        tau = scores.get("kendall_tau_unambiguous", tau)
+        sync_ms = scores.get("sync_rms_unambiguous_ms", sync_ms)
+    scores.update({"tau_judged": tau, "sync_rms_judged_ms": sync_ms,
+                   "sync_periods_judged": sync_ms / period_ms(rates)})
     scores.update(references(workspace, truth))
     scores["acceptance"] = {
         "mean_vs_oracle": scores["error_mm"]
