@@ -195,14 +195,22 @@ def runs_on(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> boo
     continuous motion (where a fast part leaves a wide step) stays within it; a time gap in
     which the motion went on does not (docs/method.md, "Events of lone photos").
     """
+    return junction_factor(X, before, after, n) <= RUN_ON_FACTOR
+
+
+def junction_factor(X: np.ndarray, before: np.ndarray, after: np.ndarray, n: int) -> float:
+    """The closest shapes ``X`` across the junction of the images ``before`` and ``after``
+    (:func:`runs_on`) apart in ``log2 n`` median steps between consecutive shapes there: the
+    least factor that would join them (inf with no step to measure)."""
     F = X.reshape(X.shape[0], -1)
     a, b = F[before[-JUNCTION_IMAGES:]], F[after[:JUNCTION_IMAGES]]
     steps = np.concatenate([np.linalg.norm(np.diff(a, axis=0), axis=1),
                             np.linalg.norm(np.diff(b, axis=0), axis=1)])
     if not steps.size:
-        return False
+        return np.inf
     gap = float(np.sqrt(((a[:, None] - b[None]) ** 2).sum(axis=2).min()))
-    return gap <= RUN_ON_FACTOR * np.log2(max(n, 2)) * float(np.median(steps))
+    unit = np.log2(max(n, 2)) * float(np.median(steps))
+    return 0.0 if gap == 0 else gap / unit if unit > 0 else np.inf
 
 
 def segment_events(
