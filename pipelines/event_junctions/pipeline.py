@@ -58,13 +58,16 @@ HOLE_START = 1.0
 """Seconds into the clip where the ``holes`` cases' stretch without photos starts."""
 
 
-def detector_captures():
+def _detector_captures():
     """``pipelines/detector_captures/pipeline.py`` as a module: its lone-photo cases."""
     path = Path(__file__).resolve().parents[1] / "detector_captures" / "pipeline.py"
     spec = importlib.util.spec_from_file_location("pipeline_detector_captures", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+detector_captures = _detector_captures()
 
 
 def jobs_of(case: str) -> list[tuple]:
@@ -75,7 +78,7 @@ def jobs_of(case: str) -> list[tuple]:
         return [(case, f"{m} without {hole:g} s", 5, (m, hole)) for m, hole in HOLES]
     if case == "seed4":
         return [(case, f"{m}@{noise:g}", 4, (m, noise)) for m, noise in SEED4]
-    return [(case, m, seed, m) for m, seed in detector_captures().CASES[case]]
+    return [(case, m, seed, m) for m, seed in detector_captures.CASES[case]]
 
 
 def simulated(data: Path, case: str, seed: int, what) -> tuple:
@@ -98,7 +101,7 @@ def simulated(data: Path, case: str, seed: int, what) -> tuple:
         return sim.capture, None, sim.truth.t
     motion, _, variant = what.partition("@")
     sim = simulate(load_mocap(resolve_motion(data, motion)),
-                   detector_captures().settings(case, seed, variant))
+                   detector_captures.settings(case, seed, variant))
     return sim.capture, None, sim.truth.t
 
 
