@@ -7,8 +7,9 @@ from .mocap import (
     pipeline_parser,
     resolve_motion,
     ring_cameras,
+    sibling_pipeline,
     simulate,
 )
 
 __all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "pipeline_parser",
-           "resolve_motion", "ring_cameras", "simulate"]
+           "resolve_motion", "ring_cameras", "sibling_pipeline", "simulate"]

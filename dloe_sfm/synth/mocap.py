@@ -13,10 +13,13 @@ bounds (as in the paper's experiments), with Gaussian noise or a detector error 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import numbers
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from types import ModuleType
 
 import numpy as np
 
@@ -97,6 +100,18 @@ def pipeline_parser(script: str, doc: str | None, name: str) -> argparse.Argumen
                         help="folder of mocap .npz clips")
     parser.add_argument("--out", type=Path, default=repo / "outputs" / name)
     return parser
+
+
+def sibling_pipeline(script: str, name: str) -> ModuleType:
+    """``pipelines/<name>/pipeline.py`` beside the pipeline at ``script``, as a module: one
+    pipeline's scores, cases or renderer used by another. Registered in ``sys.modules`` as
+    ``pipeline_<name>`` (dataclasses look their module up there)."""
+    path = Path(script).resolve().parents[1] / name / "pipeline.py"
+    spec = importlib.util.spec_from_file_location(f"pipeline_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
 
 
 def resolve_motion(data: Path, name: str) -> Path:

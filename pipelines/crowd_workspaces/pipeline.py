@@ -17,30 +17,25 @@ from __future__ import annotations
 
 import csv
 import functools
-import importlib.util
 import json
 import logging
-import sys
 import time
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 
+from dloe_sfm.synth import sibling_pipeline
+
 logger = logging.getLogger("dloe_sfm")
 
-FIELD = Path(__file__).resolve().parents[1] / "field" / "pipeline.py"
 MAX_SECONDS = 30.0  # issue 38: reconstruct within 30 s for ~100 images
 
 
 @functools.cache
 def field_pipeline() -> ModuleType:
     """``pipelines/field/pipeline.py`` as a module (scores, references, the renderer)."""
-    spec = importlib.util.spec_from_file_location("pipeline_field", FIELD)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return sibling_pipeline(__file__, "field")
 
 
 def median_burst_period_ms(rates: dict[int, float]) -> float:

@@ -28,7 +28,6 @@ workspace/ (the calibration as a COLMAP model).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import logging
 import sys
@@ -46,18 +45,10 @@ from dloe_sfm.errors import InputError
 from dloe_sfm.io import atomic_path, check_output
 from dloe_sfm.keypoints import LAYOUTS, read_keypoints
 from dloe_sfm.observations import select_person
+from dloe_sfm.synth import sibling_pipeline
 
-
-def _lab_rig():
-    """The lab rig pipeline's module (its calibration reading, detections and DLT)."""
-    path = Path(__file__).resolve().parents[1] / "lab_rig" / "pipeline.py"
-    spec = importlib.util.spec_from_file_location("pipeline_lab_rig", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-lab_rig = _lab_rig()
+lab_rig = sibling_pipeline(__file__, "lab_rig")
+"""The lab rig pipeline (its calibration reading, detections and DLT)."""
 LAYOUT = lab_rig.LAYOUT
 logger = logging.getLogger("dloe_sfm")
 

@@ -30,11 +30,11 @@ junction, then the largest factor a cut through one motion needed and the least 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import platform
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +44,14 @@ from dloe_sfm.core.options import Options
 from dloe_sfm.core.parallel import map_in_processes
 from dloe_sfm.core.pipeline import finish_single, plain_solve
 from dloe_sfm.io import atomic_path
-from dloe_sfm.synth import SimulationSettings, load_mocap, pipeline_parser, resolve_motion, simulate
+from dloe_sfm.synth import (
+    SimulationSettings,
+    load_mocap,
+    pipeline_parser,
+    resolve_motion,
+    sibling_pipeline,
+    simulate,
+)
 from dloe_sfm.synth.scenarios import simulate_events
 
 CLIPS = [(("jumping_1", "running_1"), 0), (("running_1", "basketball_1"), 0),
@@ -58,16 +65,8 @@ HOLE_START = 1.0
 """Seconds into the clip where the ``holes`` cases' stretch without photos starts."""
 
 
-def _detector_captures():
-    """``pipelines/detector_captures/pipeline.py`` as a module: its lone-photo cases."""
-    path = Path(__file__).resolve().parents[1] / "detector_captures" / "pipeline.py"
-    spec = importlib.util.spec_from_file_location("pipeline_detector_captures", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-detector_captures = _detector_captures()
+detector_captures = sibling_pipeline(__file__, "detector_captures")
+"""``pipelines/detector_captures``: its lone-photo cases."""
 
 
 def jobs_of(case: str) -> list[tuple]:
@@ -82,33 +81,31 @@ def jobs_of(case: str) -> list[tuple]:
 
 
 def simulated(data: Path, case: str, seed: int, what) -> tuple:
-    """(capture, per-image clip or side of the hole, or None, true times) of one job."""
+    """(capture, every image's clip or side of the hole, or None) of one job."""
     base = SimulationSettings(duration=3.0, num_streams=0, lone_photos=300, seed=seed)
     if case == "clips":
         sim = simulate_events([load_mocap(resolve_motion(data, m)) for m in what], base)
-        return sim.capture, sim.truth.events, sim.truth.t
+        return sim.capture, sim.truth.events
     if case == "holes":
         motion, hole = what
         sim = simulate(load_mocap(resolve_motion(data, motion)), base)
         t = sim.truth.t
         keep = np.flatnonzero((t < HOLE_START) | (t > HOLE_START + hole))
-        return sim.capture.subset(keep), (t[keep] > HOLE_START).astype(np.int64), t[keep]
+        return sim.capture.subset(keep), (t[keep] > HOLE_START).astype(np.int64)
     if case == "seed4":
         motion, noise = what
-        settings = SimulationSettings(duration=3.0, num_streams=0, lone_photos=300, seed=seed,
-                                      noise=noise)
-        sim = simulate(load_mocap(resolve_motion(data, motion)), settings)
-        return sim.capture, None, sim.truth.t
+        sim = simulate(load_mocap(resolve_motion(data, motion)), replace(base, noise=noise))
+        return sim.capture, None
     motion, _, variant = what.partition("@")
     sim = simulate(load_mocap(resolve_motion(data, motion)),
                    detector_captures.settings(case, seed, variant))
-    return sim.capture, None, sim.truth.t
+    return sim.capture, None
 
 
 def run_one(job: tuple) -> list[dict]:
     """Solve one capture with the default options; every junction of its final order."""
     data, (case, name, seed, what) = job
-    capture, sides, _ = simulated(data, case, seed, what)
+    capture, sides = simulated(data, case, seed, what)
     options = Options()
     result, labels = plain_solve(capture, options)
     result = finish_single(capture, options, result, labels)

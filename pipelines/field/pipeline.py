@@ -16,10 +16,8 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import logging
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -35,10 +33,10 @@ from dloe_sfm.io import NpzReader, atomic_path
 from dloe_sfm.keypoints import read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.stages.reconstruct import main as reconstruct_main
+from dloe_sfm.synth import sibling_pipeline
 
 logger = logging.getLogger("dloe_sfm")
 
-RENDERER = Path(__file__).resolve().parents[1] / "make_demo_assets" / "pipeline.py"
 # Issue 14's acceptance for field workspaces.
 ORACLE_FACTOR, ORACLE_SLACK_MM = 1.3, 2.0
 WORST_OVER_MEDIAN = 5.0
@@ -51,11 +49,7 @@ where they are at most this share of the images (issue 38), else with every imag
 
 def renderer() -> ModuleType:
     """The demo renderer (``pipelines/make_demo_assets/pipeline.py``) as a module."""
-    spec = importlib.util.spec_from_file_location("pipeline_make_demo_assets", RENDERER)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return sibling_pipeline(__file__, "make_demo_assets")
 
 
 def per_image_errors_mm(X: np.ndarray, X_true: np.ndarray) -> np.ndarray:
