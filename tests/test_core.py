@@ -1,6 +1,8 @@
 """The DLOE core: each step against a generic solver, and the properties the method relies on."""
 
+import warnings
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import osqp
@@ -28,7 +30,7 @@ from dloe_sfm.core.init import (
     pseudo_triangulate,
 )
 from dloe_sfm.core.options import Options
-from dloe_sfm.core.pipeline import solve_events
+from dloe_sfm.core.pipeline import events_along_shapes, solve_events
 from dloe_sfm.core.problem import build_problem, initialise
 from dloe_sfm.core.sequencing import (
     REFERENCE_STREAMS,
@@ -615,6 +617,25 @@ def test_events_of_lone_photos_follow_their_shapes(assets_dir):
     r = solve_events(cap, Options(), labels, initialise(cap, Options()))
     assert not r.events.any()
     assert kendall_tau(r.order, truth.t) >= 0.99
+
+
+def test_events_turned_along_their_shapes_by_their_own_order(assets_dir):
+    """Three events of a jump's lone photos on the line of their true shapes: two whose own
+    orders run opposite ways, so exactly one is turned, and one whose order places every image
+    alike, which has no way to run: not turned, and no warning (a constant's correlation)."""
+    seq = load_mocap(assets_dir / "mocap" / "jumping_1.npz")
+    cap, truth = simulate(seq, SimulationSettings(num_streams=0, lone_photos=60, duration=2.0,
+                                                  seed=2))
+    events = np.array_split(np.argsort(truth.t), 3)
+    own = [truth.t[events[0]], -truth.t[events[1]], np.zeros(events[2].size)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sequence, flips = events_along_shapes(
+            cap, truth.X, events, [SimpleNamespace(embedding=e) for e in own])
+    assert flips[0] != flips[1]
+    assert not flips[2]
+    assert sorted(sequence) == [0, 1, 2]
+    assert sequence[1] == 1
 
 
 def test_lone_photos_from_anywhere_are_ordered_and_reconstructed(assets_dir):

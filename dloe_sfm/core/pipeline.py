@@ -258,13 +258,20 @@ def events_along_shapes(
     one motion cut apart; then this is its order (a true gap's order no image can tell)."""
     g = orient(shape_embedding(X), capture.stream_ids, capture.frame)
     places = [float(np.median(g[idx])) for idx in events]
-    flips = [bool(np.corrcoef(r.embedding, g[idx])[0, 1] < 0) if idx.size > 1 else False
-             for idx, r in zip(events, results, strict=True)]
+    flips = [_anticorrelated(r.embedding, g[idx]) for idx, r in zip(events, results, strict=True)]
     sequence = np.argsort(places, kind="stable")
     if not np.array_equal(sequence, np.arange(len(events))) or any(flips):
         logger.info("events of lone photos ordered along their shapes: %s",
                     ", ".join(f"{e}{' (reversed)' if flips[e] else ''}" for e in sequence))
     return sequence, flips
+
+
+def _anticorrelated(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether ``a`` and ``b`` run opposite ways: their covariance is negative (the sign of
+    their correlation). Not where either is constant: it has no way to run."""
+    if np.ptp(a) == 0 or np.ptp(b) == 0:
+        return False
+    return bool(np.dot(a - a.mean(), b - b.mean()) < 0)
 
 
 def joined_where_running_on(
