@@ -78,6 +78,14 @@ SPAN_REACH = 10.0
 its span costs :data:`OUT_OF_RANGE`: its splines would need as many more knots (a step of
 Levenberg-Marquardt on six streams reached times whose knots no memory holds)."""
 
+STALL_EVALUATIONS = 10
+STALL_SHARE = 1e-3
+"""The last stage's fits of :func:`fit_clocks` (all images and points) stop at the best clocks
+so far once their residual fell by less than this share of itself in the last
+:data:`STALL_EVALUATIONS` evaluations: on 64 streams they crawled on to 125 and 109
+evaluations without a better sync (docs/method.md, "Many cameras, measured"). The wide-knot
+fits from first guesses periods off cross plateaus on their way and run to convergence."""
+
 BURST_PRIOR = 2.0
 """Standard deviation of the prior that ties the times of bursts' images to the rank base, in
 median gaps between those times (:func:`fit_burst_clocks`)..."""
@@ -86,6 +94,10 @@ BURST_STAGES = (4.0, 2.0, 1.0, 1.0)
 is estimated again at the clocks of the one before)..."""
 BURST_KNOTS_BEFORE = 3.0
 """...and how many of a stage's widest knot spacings its knots start before the first time."""
+
+
+class _Stalled(Exception):
+    """Raised by a fit's residual to stop its Levenberg-Marquardt (:data:`STALL_SHARE`)."""
 
 
 def sampling_interval(t: np.ndarray) -> float:
@@ -212,11 +224,12 @@ def fit_clocks(
 
     def fitted(x: np.ndarray, cols: np.ndarray, fits: Callable[[np.ndarray], list[SplineFit]],
                rows: np.ndarray, first: float, norms: list[float],
-               known: list[SplineFit] | None = None) -> np.ndarray:
+               known: list[SplineFit] | None = None, stall: bool = False) -> np.ndarray:
         """``x`` with its ``cols`` fitted by Levenberg-Marquardt to the residuals of ``fits``
         (the spline fits at clocks z on images ``rows``, knots from ``first``), each over its
         norm in ``norms``, seen through :func:`_condensed`. Fits are cached by ``x[cols]``,
-        starting with ``known``, the fits at ``x``."""
+        starting with ``known``, the fits at ``x``; with ``stall`` it stops where its residual
+        stalls (:data:`STALL_SHARE`)."""
         cache = {} if known is None else {x[cols].tobytes(): known}
         dt_fit = dt[rows][:, cols]
 
@@ -243,10 +256,25 @@ def fit_clocks(
             jtr = sum(g / n**2 for (_, g), n in zip(grams, norms, strict=True))
             return _condensed(jtj, jtr, squares(y))
 
-        sol = least_squares(lambda y: np.r_[np.zeros(cols.size), np.sqrt(squares(y))], x[cols],
-                            jac=jacobian, method="lm", xtol=1e-6, ftol=1e-8)
+        best = [squares(x[cols]), x[cols]]
+        trail = []  # the best residual after every evaluation
+
+        def residual(y: np.ndarray) -> np.ndarray:
+            value = squares(y)
+            if value < best[0]:
+                best[:] = [value, y.copy()]
+            trail.append(best[0])
+            if (stall and len(trail) > STALL_EVALUATIONS and trail[-STALL_EVALUATIONS - 1] - best[0]
+                    <= STALL_SHARE * trail[-STALL_EVALUATIONS - 1]):
+                raise _Stalled
+            return np.r_[np.zeros(cols.size), np.sqrt(value)]
+
         out = x.copy()
-        out[cols] = sol.x
+        try:
+            out[cols] = least_squares(residual, x[cols], jac=jacobian, method="lm", xtol=1e-6,
+                                      ftol=1e-8).x
+        except _Stalled:
+            out[cols] = best[1]
         return out
 
     def grid(x: np.ndarray) -> tuple[np.ndarray, float]:
@@ -293,9 +321,9 @@ def fit_clocks(
     everything = np.arange(t_init.size)
     at_grid = fine(x)
     norms = [np.sqrt(float(f.res @ f.res)) for f in at_grid]
-    x = fitted(x, shifts, fine, everything, start, norms, at_grid)
+    x = fitted(x, shifts, fine, everything, start, norms, at_grid, stall=True)
     if not held:
-        x = fitted(x, np.arange(x.size), fine, everything, start, norms)
+        x = fitted(x, np.arange(x.size), fine, everything, start, norms, stall=True)
     return times(x)
 
 
