@@ -3,7 +3,6 @@ all around the scene, read through real pycolmap and dloe_sfm, and ``dloe-sfm de
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
@@ -19,8 +18,9 @@ from dloe_sfm.evaluate import evaluate_output
 from dloe_sfm.keypoints import read_keypoints
 from dloe_sfm.observations import build_capture
 from dloe_sfm.stages.demo import CROWD
+from dloe_sfm.synth import load_pipeline
 
-PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "crowd_workspaces" / "pipeline.py"
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 
 
 @pytest.fixture(scope="module")
@@ -34,10 +34,7 @@ def crowd(assets_dir: Path) -> Path:
 @pytest.fixture(scope="module")
 def crowd_pipeline():
     """``pipelines/crowd_workspaces/pipeline.py`` as a module."""
-    spec = importlib.util.spec_from_file_location("pipeline_crowd_workspaces", PIPELINE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_pipeline(PIPELINES, "crowd_workspaces")
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,6 @@ README says, and what ``reconstruct`` with default options reaches on it."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from types import ModuleType
 
@@ -11,8 +10,9 @@ import numpy as np
 import pytest
 
 from dloe_sfm.colmap import load_workspace
+from dloe_sfm.synth import load_pipeline
 
-PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "field" / "pipeline.py"
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 
 
 @pytest.fixture(scope="module")
@@ -29,11 +29,8 @@ def truth(field: Path) -> dict[str, np.ndarray]:
         return {k: data[k] for k in data.files}
 
 
-def load_pipeline() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("pipeline_field", PIPELINE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def field_pipeline() -> ModuleType:
+    return load_pipeline(PIPELINES, "field")
 
 
 def test_cameras_are_handheld_at_their_own_rates(field, truth):
@@ -66,7 +63,7 @@ def test_default_reconstruction_against_the_oracle(field, tmp_path):
     sync RMS 0.012 of a frame period, worst image 1.24 x the median, the capture's first frame
     (which its chain row copies from an image 60 ms later) `uncertain`, its points kept: the
     issue's four acceptance lines, nothing dropped."""
-    pipeline = load_pipeline()
+    pipeline = field_pipeline()
     out = tmp_path / "dloe"
     pipeline.reconstruct_main(field, field / "keypoints.csv", "csv", out, plots=False)
     s = pipeline.score(field, out)

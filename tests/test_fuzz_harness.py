@@ -3,23 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "fuzz" / "pipeline.py"
+from dloe_sfm.synth import load_pipeline
+
+PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 
 
 @pytest.fixture(scope="module")
 def fuzz() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("pipeline_fuzz", PIPELINE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_pipeline(PIPELINES, "fuzz")
 
 
 def test_cases_are_many_unique_and_declared(fuzz) -> None:

@@ -3,9 +3,7 @@ the bundled mocap clips."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from types import ModuleType
 
@@ -14,18 +12,13 @@ import open3d as o3d
 import pytest
 from scenes import body_at
 
-from dloe_sfm import colmap
+from dloe_sfm import colmap, synth
 
 PIPELINES = Path(__file__).resolve().parents[1] / "pipelines"
 
 
 def load_pipeline(name: str) -> ModuleType:
-    spec = importlib.util.spec_from_file_location(f"pipeline_{name}",
-                                                  PIPELINES / name / "pipeline.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return synth.load_pipeline(PIPELINES, name)
 
 
 @pytest.mark.slow

@@ -4,6 +4,7 @@ from .mocap import (
     MocapSequence,
     SimulationSettings,
     load_mocap,
+    load_pipeline,
     pipeline_parser,
     resolve_motion,
     ring_cameras,
@@ -11,5 +12,5 @@ from .mocap import (
     simulate,
 )
 
-__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "pipeline_parser",
+__all__ = ["MocapSequence", "SimulationSettings", "load_mocap", "load_pipeline", "pipeline_parser",
            "resolve_motion", "ring_cameras", "sibling_pipeline", "simulate"]

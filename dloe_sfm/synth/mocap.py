@@ -102,16 +102,23 @@ def pipeline_parser(script: str, doc: str | None, name: str) -> argparse.Argumen
     return parser
 
 
+def load_pipeline(pipelines: Path, name: str) -> ModuleType:
+    """``<pipelines>/<name>/pipeline.py`` as the module ``pipeline_<name>``, executed once:
+    registered in ``sys.modules`` (dataclasses look their module up there), every later call
+    returns that module."""
+    key = f"pipeline_{name}"
+    if key not in sys.modules:
+        spec = importlib.util.spec_from_file_location(key, pipelines / name / "pipeline.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[key] = module
+        spec.loader.exec_module(module)
+    return sys.modules[key]
+
+
 def sibling_pipeline(script: str, name: str) -> ModuleType:
-    """``pipelines/<name>/pipeline.py`` beside the pipeline at ``script``, as a module: one
-    pipeline's scores, cases or renderer used by another. Registered in ``sys.modules`` as
-    ``pipeline_<name>`` (dataclasses look their module up there)."""
-    path = Path(script).resolve().parents[1] / name / "pipeline.py"
-    spec = importlib.util.spec_from_file_location(f"pipeline_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    """``pipelines/<name>/pipeline.py`` beside the pipeline at ``script`` (:func:`load_pipeline`):
+    one pipeline's scores, cases or renderer used by another."""
+    return load_pipeline(Path(script).resolve().parents[1], name)
 
 
 def resolve_motion(data: Path, name: str) -> Path:

@@ -16,7 +16,6 @@ Run from the repository root::
 from __future__ import annotations
 
 import csv
-import functools
 import json
 import logging
 import time
@@ -32,7 +31,6 @@ logger = logging.getLogger("dloe_sfm")
 MAX_SECONDS = 30.0  # issue 38: reconstruct within 30 s for ~100 images
 
 
-@functools.cache
 def field_pipeline() -> ModuleType:
     """``pipelines/field/pipeline.py`` as a module (scores, references, the renderer)."""
     return sibling_pipeline(__file__, "field")
